@@ -1,0 +1,1 @@
+"""Spherical-harmonics mathematics (real SH, z-up, Condon-Shortley phase)."""
