@@ -1,0 +1,1 @@
+"""Hierarchical sample warps over the equal-area (z, phi) cylinder."""
