@@ -1,0 +1,5 @@
+"""Environment maps on the equal-area (z, phi) grid: :class:`EnvPyramid`."""
+
+from .pyramid import DEFAULT_MAX_DEPTH, EnvPyramid, auto_depth
+
+__all__ = ["DEFAULT_MAX_DEPTH", "EnvPyramid", "auto_depth"]

@@ -1,0 +1,349 @@
+"""Environment-map luminance on the equal-area (z, phi) grid, as a sum pyramid.
+
+The pyramid is what hierarchical warps descend: level ``k`` has 2^k x 2^k
+cells of the equal-area cylinder (see docs/ARCHITECTURE.md), each holding the
+integral of the envmap's luminance over the cell, in units of radiance x
+steradian (cell solid angle = dz dphi). A parent is the sum of its four
+children, so the root holds the integral over the whole sphere.
+
+Frames. Mitsuba's ``envmap`` is latitude-longitude in a +Y-up *local* frame
+(``u = atan2(d.x, -d.z) / 2 pi``, ``v = acos(d.y) / pi``, ``to_world`` maps
+local to world). The pyramid lives in the right-handed z-up *grid frame*
+
+    z_g = local.y,   x_g = -local.z,   y_g = -local.x,
+
+so that ``z_g = cos(theta_env)`` and ``phi_g = 2 pi (1 - u) (mod 2 pi)``.
+
+Resampling is exact, not supersampled: the emitter's radiance is bilinear in
+(u, theta) between texels, i.e. a sum of texel values times separable hat
+functions, and a grid cell is a rectangle in (z, phi) with ``z = cos(theta)``
+and ``phi`` affine in ``u``. Both 1D integrals of a hat have closed forms
+(``int (a + b t) sin t dt`` along theta, a trapezoid along u), so every cell
+integral is computed exactly (float64 prefix sums, stored as float32). Thin
+features (a sun of one texel) can therefore not be missed at any depth.
+"""
+
+from __future__ import annotations
+
+import numbers
+import time
+import warnings
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+#: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
+#: buffer is 22.4 MB. Deeper levels would not help the warps anyway: rescaling
+#: a float32 sample loses about one bit per split, so ~11 levels per
+#: dimension is what a 24-bit mantissa supports (docs/math.md, section 4).
+DEFAULT_MAX_DEPTH = 11
+
+#: Rec. 709 luminance weights, identical to ``mi.luminance``.
+LUMINANCE_WEIGHTS = np.array([0.212671, 0.715160, 0.072169])
+
+_TWO_PI = 2.0 * np.pi
+#: Number of 4-float blocks before level k+1 is ``1 + (4^k - 1) / 3``; the
+#: quotient is the bit pattern 0b0101...01 (k ones), i.e. this mask cut to
+#: 2k bits, which avoids an integer division in traced code.
+_BLOCK_COUNT_MASK = 0x55555555
+#: Texel rows/columns processed at once while resampling (bounds the float64
+#: temporaries to about 8 * _CHUNK * max(H, 2^D) bytes).
+_CHUNK = 512
+
+
+def auto_depth(height: int, width: int, max_depth: int = DEFAULT_MAX_DEPTH) -> int:
+    """Finest level D for an H x W lat-long map: 2^D >= max(W, H), in [1, max_depth].
+
+    With 2^D >= W the grid resolves the map's azimuthal texel spacing; near
+    the equator 2^D >= H cells in z are finer than the H - 1 rows in theta.
+    """
+    if max_depth < 1:
+        raise ValueError(f"EnvPyramid: max_depth must be >= 1, got {max_depth}")
+    need = int(np.ceil(np.log2(max(height, width, 2))))
+    return int(min(max(need, 1), max_depth))
+
+
+def _theta_integrals(lum: np.ndarray, n: int) -> np.ndarray:
+    """Integrate each texel column over the n z-bands of the grid.
+
+    ``lum`` is (H, W) texel luminance, row y at theta_y = y pi / (H-1),
+    linearly interpolated in theta. Returns R (n, W), float64:
+    ``R[iz, x] = int_{z_iz}^{z_iz+1} f_x(acos z) dz`` with z_i = -1 + 2 i / n.
+    """
+    height, width = lum.shape
+    z_edges = np.linspace(-1.0, 1.0, n + 1)
+    if height == 1:
+        # A single row is constant in theta (the emitter reads row 0 everywhere).
+        return np.outer(np.diff(z_edges), lum[0].astype(np.float64))
+
+    h = np.pi / (height - 1)
+    theta_nodes = np.arange(height) * h
+
+    def hat_weights(y: np.ndarray, s: np.ndarray):
+        """int_{t_y}^{s} (1-w) sin t dt and int_{t_y}^{s} w sin t dt, w = (t - t_y)/h."""
+        t0 = theta_nodes[y]
+        sin_integral = np.cos(t0) - np.cos(s)
+        upper = (-(s - t0) * np.cos(s) + np.sin(s) - np.sin(t0)) / h
+        return sin_integral - upper, upper
+
+    # Full-interval weights: C[y] = int_0^{t_y} f sin = sum_{j<y} A_j T_j + B_j T_{j+1}.
+    full_a, full_b = hat_weights(np.arange(height - 1), theta_nodes[1:])
+    # G(theta_i) at the grid's band edges, theta_i = acos(z_i) (decreasing in i).
+    theta_edges = np.arccos(z_edges)
+    y_edge = np.minimum((theta_edges / h).astype(np.int64), height - 2)
+    part_a, part_b = hat_weights(y_edge, theta_edges)
+
+    bands = np.empty((n, width))
+    for x0 in range(0, width, _CHUNK):
+        cols = lum[:, x0:x0 + _CHUNK].astype(np.float64)
+        pieces = full_a[:, None] * cols[:-1] + full_b[:, None] * cols[1:]
+        cumulative = np.zeros((height, cols.shape[1]))
+        np.cumsum(pieces, axis=0, out=cumulative[1:])
+        g = (cumulative[y_edge] + part_a[:, None] * cols[y_edge]
+             + part_b[:, None] * cols[y_edge + 1])
+        # Cell iz spans theta from theta_{iz+1} up to theta_iz.
+        bands[:, x0:x0 + _CHUNK] = g[:-1] - g[1:]
+    return bands
+
+
+def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
+    """Integrate band profiles over the n phi-cells of the grid.
+
+    ``bands`` (rows, W) are values at texel columns x (u_x = (x+0.5)/W),
+    linear in u between columns and periodic. Returns (rows, n), float64,
+    column iphi = integral over phi_g in [2 pi iphi/n, 2 pi (iphi+1)/n].
+    """
+    rows, width = bands.shape
+    # Texel coordinate s = u W - 0.5; cell edges u_k = k/n.
+    s_edges = np.arange(n + 1) * (width / n) - 0.5
+    floor_s = np.floor(s_edges)
+    frac = s_edges - floor_s
+    # Extended node j sits at s = j - 1 and holds column (j - 1) mod W.
+    node = (floor_s + 1).astype(np.int64)
+    wrap = np.concatenate([[width - 1], np.arange(width), [0]])
+
+    out = np.empty((rows, n))
+    for r0 in range(0, rows, _CHUNK):
+        ext = bands[r0:r0 + _CHUNK][:, wrap]
+        cumulative = np.zeros_like(ext)
+        np.cumsum(0.5 * (ext[:, :-1] + ext[:, 1:]), axis=1, out=cumulative[:, 1:])
+        lo, hi = ext[:, node], ext[:, node + 1]
+        antideriv = cumulative[:, node] + lo * frac + (hi - lo) * (0.5 * frac * frac)
+        u_cells = (_TWO_PI / width) * (antideriv[:, 1:] - antideriv[:, :-1])
+        # phi_g = 2 pi (1 - u): phi-cell iphi is u-cell n - 1 - iphi.
+        out[r0:r0 + _CHUNK] = u_cells[:, ::-1]
+    return out
+
+
+def _blocked(level: np.ndarray) -> np.ndarray:
+    """Reorder a (2m, 2m) level so that each parent's 4 children are consecutive,
+    in (z-half, phi-half) order (0,0), (0,1), (1,0), (1,1)."""
+    m = level.shape[0] // 2
+    return level.reshape(m, 2, m, 2).transpose(0, 2, 1, 3).ravel()
+
+
+def _block_offset(level):
+    """Index of the first 4-float block of level+1 (Python int or traced UInt32)."""
+    if isinstance(level, numbers.Integral):
+        return 1 + ((4 ** int(level) - 1) // 3)
+    return 1 + (mi.UInt32(_BLOCK_COUNT_MASK) & ((mi.UInt32(1) << (2 * level)) - 1))
+
+
+class EnvPyramid:
+    """Sum pyramid of an ``envmap`` emitter's luminance on the equal-area grid.
+
+    Level k (0 <= k <= ``depth``) has 2^k x 2^k cells; cell (iz, iphi)
+    covers z in [-1 + 2 iz/2^k, -1 + 2 (iz+1)/2^k] and phi in
+    [2 pi iphi/2^k, 2 pi (iphi+1)/2^k] of the *grid frame* (module docstring)
+    and holds the integral of ``scale * luminance(radiance)`` over that
+    solid angle (radiance x sr).
+
+    Storage: one flat ``mi.Float`` ``buffer`` of 4-float blocks. Block 0 is
+    ``[total, 0, 0, 0]``; the 4^(k+1) values of level k+1 follow, one block
+    per level-k parent (row-major in (iz, iphi)), each block holding the
+    children (a, b) = (0,0), (0,1), (1,0), (1,1), a = z-half, b = phi-half.
+    So :meth:`children` is a single ``dr.gather(mi.Vector4f, ...)``.
+
+    Bad texels (NaN, +-Inf or negative luminance) count as 0, with one
+    warning. An all-zero map gives ``total == 0`` and ``is_black``.
+
+    Parameters
+    ----------
+    emitter: a Mitsuba ``envmap`` emitter (``TypeError`` otherwise).
+    max_depth: cap on the finest level D (default :data:`DEFAULT_MAX_DEPTH`);
+        D = min(ceil(log2(max(W, H))), max_depth), at least 1.
+    """
+
+    def __init__(self, emitter: mi.Emitter, max_depth: int | None = None) -> None:
+        name = emitter.class_name() if hasattr(emitter, "class_name") else type(emitter).__name__
+        if name != "EnvironmentMapEmitter":
+            raise TypeError(f"EnvPyramid needs an 'envmap' emitter, got {name}")
+        params = mi.traverse(emitter)
+        data = params["data"].numpy()  # (H, W + 2, C): one halo column each side
+        if data.ndim != 3 or data.shape[2] not in (1, 3):
+            raise TypeError(f"EnvPyramid: unsupported envmap data of shape {data.shape} "
+                            "(expected (H, W+2, 1 or 3); spectral variants are not supported)")
+        start = time.perf_counter()
+        luminance = self._texel_luminance(data[:, 1:-1, :])
+        self._build(luminance, float(dr.ravel(params["scale"])[0]),
+                    mi.AffineTransform4f(params["to_world"]), max_depth, start)
+
+    @classmethod
+    def from_latlong(cls, image: np.ndarray, scale: float = 1.0,
+                     to_world: mi.ScalarAffineTransform4f | None = None,
+                     max_depth: int | None = None) -> "EnvPyramid":
+        """Pyramid of a lat-long image in the ``envmap`` layout, without an emitter.
+
+        ``image`` is (H, W) luminance or (H, W, 1|3) linear RGB, row 0 at the
+        local +Y pole, column x centred at u = (x + 0.5)/W. Equals the pyramid
+        of ``envmap`` emitter built from the same image, scale and to_world.
+        """
+        image = np.asarray(image)
+        if image.ndim == 2:
+            image = image[..., None]
+        if image.ndim != 3 or image.shape[2] not in (1, 3) or min(image.shape[:2]) < 1:
+            raise ValueError(f"EnvPyramid.from_latlong: expected (H, W) or (H, W, 1|3), got {image.shape}")
+        start = time.perf_counter()
+        pyramid = cls.__new__(cls)
+        to_world = mi.ScalarAffineTransform4f() if to_world is None else to_world
+        pyramid._build(cls._texel_luminance(image), float(scale),
+                       mi.AffineTransform4f(to_world), max_depth, start)
+        return pyramid
+
+    # ------------------------------------------------------------------ build
+
+    @staticmethod
+    def _texel_luminance(texels: np.ndarray) -> np.ndarray:
+        """(H, W, 1|3) texels -> (H, W) float32 luminance, row block by row block
+        (a contiguous RGB copy of an 8k map would be 400 MB)."""
+        height = texels.shape[0]
+        out = np.empty(texels.shape[:2], dtype=np.float32)
+        for y0 in range(0, height, _CHUNK):
+            block = texels[y0:y0 + _CHUNK].astype(np.float64)
+            out[y0:y0 + _CHUNK] = block[..., 0] if block.shape[2] == 1 else block @ LUMINANCE_WEIGHTS
+        return out
+
+    def _build(self, luminance: np.ndarray, scale: float, to_world: mi.AffineTransform4f,
+               max_depth: int | None, start: float) -> None:
+        if not np.isfinite(scale) or scale < 0:
+            raise ValueError(f"EnvPyramid: envmap scale must be finite and >= 0, got {scale}")
+        linear = to_world.matrix.numpy()[:3, :3].reshape(3, 3)
+        if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-4):
+            raise ValueError("EnvPyramid: the envmap's to_world must be a rotation "
+                             "(the emitter maps directions through it without renormalising)")
+        bad = ~np.isfinite(luminance) | (luminance < 0)
+        bad_count = int(np.count_nonzero(bad))
+        if bad_count:
+            warnings.warn(f"EnvPyramid: {bad_count} envmap texel(s) with NaN, infinite or "
+                          "negative luminance are treated as 0", RuntimeWarning, stacklevel=3)
+            luminance = np.where(bad, np.float32(0), luminance)
+
+        height, width = luminance.shape
+        depth = auto_depth(height, width, DEFAULT_MAX_DEPTH if max_depth is None else max_depth)
+        n = 1 << depth
+        finest = scale * _phi_integrals(_theta_integrals(luminance, n), n)
+
+        buffer = np.zeros(4 * _block_offset(depth), dtype=np.float32)
+        level = finest
+        for k in range(depth, 0, -1):
+            begin = 4 * _block_offset(k - 1)
+            buffer[begin:begin + level.size] = _blocked(level)
+            m = level.shape[0] // 2
+            level = level.reshape(m, 2, m, 2).sum(axis=(1, 3))
+        buffer[0] = level[0, 0]
+
+        #: Finest level D; levels 0..D exist.
+        self.depth: int = depth
+        #: Integral of scale * luminance over the sphere (radiance x sr), float64.
+        self.total: float = float(level[0, 0])
+        self.is_black: bool = self.total == 0.0
+        self.buffer: mi.Float = mi.Float(buffer)
+        self.nbytes: int = buffer.nbytes
+        self.to_world: mi.AffineTransform4f = to_world
+        self.to_local: mi.AffineTransform4f = to_world.inverse()
+        self.texel_resolution: tuple[int, int] = (height, width)
+        dr.eval(self.buffer)
+        self.build_time_s: float = time.perf_counter() - start
+
+    # ----------------------------------------------------------------- lookups
+
+    def children(self, level: int | mi.UInt32, iz: mi.UInt32, iphi: mi.UInt32,
+                 active: mi.Bool = True) -> mi.Vector4f:
+        """Integrals of the 4 children of cell (iz, iphi) at ``level`` (< depth).
+
+        Returns (c00, c01, c10, c11) with c_ab the child (2 iz + a, 2 iphi + b),
+        a = upper-z half, b = upper-phi half. One gather; ``level`` may be a
+        traced ``mi.UInt32`` (e.g. a ``dr.while_loop`` state variable).
+        """
+        block = _block_offset(level) + ((mi.UInt32(iz) << level) | mi.UInt32(iphi))
+        return dr.gather(mi.Vector4f, self.buffer, block, active)
+
+    def cell_integral(self, level: int | mi.UInt32, iz: mi.UInt32, iphi: mi.UInt32,
+                      active: mi.Bool = True) -> mi.Float:
+        """Integral over cell (iz, iphi) at ``level`` (0..depth), radiance x sr."""
+        iz, iphi = mi.UInt32(iz), mi.UInt32(iphi)
+        parent_level = dr.maximum(mi.UInt32(level), 1) - 1
+        block = _block_offset(parent_level) + (((iz >> 1) << parent_level) | (iphi >> 1))
+        index = 4 * block + 2 * (iz & 1) + (iphi & 1)
+        index = dr.select(mi.UInt32(level) == 0, 0, index)
+        return dr.gather(mi.Float, self.buffer, index, active)
+
+    def cell_index(self, level: int | mi.UInt32, z: mi.Float, phi: mi.Float) -> tuple[mi.UInt32, mi.UInt32]:
+        """Cell (iz, iphi) of ``level`` containing grid coordinates (z, phi);
+        points on the domain boundary are clamped into the edge cells."""
+        cells = mi.UInt32(1) << mi.UInt32(level)
+        cells_f = mi.Float(cells)
+        iz = mi.UInt32(dr.clip((z + 1) * 0.5 * cells_f, 0, cells_f - 1))
+        iphi = mi.UInt32(dr.clip(phi * (1 / _TWO_PI) * cells_f, 0, cells_f - 1))
+        return iz, iphi
+
+    def level_numpy(self, k: int) -> np.ndarray:
+        """Level k as a (2^k, 2^k) float32 array, rows = iz, columns = iphi."""
+        k = int(k)
+        if not 0 <= k <= self.depth:
+            raise ValueError(f"EnvPyramid.level_numpy: level {k} outside 0..{self.depth}")
+        if k == 0:
+            return self.buffer.numpy()[:1].reshape(1, 1).copy()
+        m = 1 << (k - 1)
+        begin = 4 * _block_offset(k - 1)
+        blocks = self.buffer.numpy()[begin:begin + 4 * m * m].reshape(m, m, 2, 2)
+        return blocks.transpose(0, 2, 1, 3).reshape(2 * m, 2 * m).copy()
+
+    # ------------------------------------------------------------------ frames
+
+    def grid_from_world(self, d: mi.Vector3f) -> mi.Vector3f:
+        """World direction -> grid-frame direction (z_g = local.y, x_g = -local.z, y_g = -local.x)."""
+        local = self.to_local @ mi.Vector3f(d)
+        return mi.Vector3f(-local.z, -local.x, local.y)
+
+    def world_from_grid(self, d: mi.Vector3f) -> mi.Vector3f:
+        """Grid-frame direction -> world direction (inverse of :meth:`grid_from_world`)."""
+        d = mi.Vector3f(d)
+        return self.to_world @ mi.Vector3f(-d.y, d.z, -d.x)
+
+    @staticmethod
+    def grid_coords(d_grid: mi.Vector3f) -> tuple[mi.Float, mi.Float]:
+        """Unit grid-frame direction -> (z, phi), z in [-1, 1], phi in [0, 2 pi).
+
+        phi = atan2(y, x) wrapped into [0, 2 pi); at the poles (x = y = 0)
+        phi = 0, and a tiny negative angle whose wrap rounds up to 2 pi in
+        float32 maps to 0 (the same direction up to rounding).
+        """
+        z = dr.clip(d_grid.z, -1, 1)
+        phi = dr.atan2(d_grid.y, d_grid.x)
+        phi = dr.select(phi < 0, phi + _TWO_PI, phi)
+        phi = dr.select(phi >= _TWO_PI, 0, phi)
+        return z, phi
+
+    @staticmethod
+    def grid_direction(z: mi.Float, phi: mi.Float) -> mi.Vector3f:
+        """(z, phi) -> unit grid-frame direction (inverse of :meth:`grid_coords`)."""
+        sin_theta = dr.safe_sqrt(1 - z * z)
+        sin_phi, cos_phi = dr.sincos(phi)
+        return mi.Vector3f(sin_theta * cos_phi, sin_theta * sin_phi, z)
+
+    def __repr__(self) -> str:
+        height, width = self.texel_resolution
+        return (f"EnvPyramid[texels={height}x{width}, depth={self.depth}, total={self.total:.6g}, "
+                f"nbytes={self.nbytes}, build_time_s={self.build_time_s:.3f}]")

@@ -1,0 +1,403 @@
+"""Specification of EnvPyramid: envmap luminance integrated over equal-area cells.
+
+Reference values come from the ``envmap`` emitter's own ``eval``, integrated by
+an independent quadrature: each grid cell is cut at the texel rows/columns
+(where the bilinear radiance has kinks) and every piece is integrated with
+Gauss-Legendre rules in (theta, phi), d omega = sin(theta) dtheta dphi. The
+directions are built here from the ARCHITECTURE.md grid-frame formula, not by
+the code under test.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling.envmap import DEFAULT_MAX_DEPTH, EnvPyramid, auto_depth  # noqa: E402
+from mitsuba_shsampling.envmap.synthetic import (  # noqa: E402
+    constant_latlong, envmap_emitter, sun_sky_latlong)
+
+ENVMAP_DIR = "/work/shared/envmaps"
+TILTED_30DEG = mi.ScalarAffineTransform4f().rotate(
+    (np.array([0.3, 0.8, -0.52]) / np.linalg.norm([0.3, 0.8, -0.52])).tolist(), 30.0)
+
+
+def random_latlong(height: int, width: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(0.0, 2.0, size=(height, width, 3)).astype(np.float32)
+
+
+def eval_luminance(emitter: mi.Emitter, world_dirs: np.ndarray) -> np.ndarray:
+    """Emitter luminance seen along world directions (N, 3), float64."""
+    si = dr.zeros(mi.SurfaceInteraction3f, len(world_dirs))
+    si.wi = -mi.Vector3f(world_dirs.T.astype(np.float32))
+    return mi.luminance(emitter.eval(si)).numpy().astype(np.float64)
+
+
+def world_from_grid_reference(grid_dirs: np.ndarray, to_world) -> np.ndarray:
+    """Grid frame -> envmap local (+Y up) -> world, per ARCHITECTURE.md."""
+    x, y, z = grid_dirs[:, 0], grid_dirs[:, 1], grid_dirs[:, 2]
+    local = np.stack([-y, z, -x], axis=1)
+    matrix = np.eye(4) if to_world is None else np.array(to_world.matrix, dtype=np.float64).reshape(4, 4)
+    return local @ matrix[:3, :3].T
+
+
+def reference_cell_integral(emitter, to_world, texels_hw, z0, z1, phi0, phi1,
+                            theta_nodes: int = 6, phi_nodes: int = 3) -> float:
+    """Integral of the emitter's luminance over grid cell [z0,z1] x [phi0,phi1]."""
+    height, width = texels_hw
+    theta_lo, theta_hi = np.arccos(z1), np.arccos(z0)
+    theta_breaks = np.arange(height) * np.pi / max(height - 1, 1)
+    theta_edges = np.unique(np.concatenate(
+        [[theta_lo, theta_hi], theta_breaks[(theta_breaks > theta_lo) & (theta_breaks < theta_hi)]]))
+    # Texel columns sit at u = (x + 0.5)/W, i.e. grid phi = 2 pi (1 - u).
+    phi_breaks = 2 * np.pi * (1 - (np.arange(width) + 0.5) / width)
+    phi_edges = np.unique(np.concatenate(
+        [[phi0, phi1], phi_breaks[(phi_breaks > phi0) & (phi_breaks < phi1)]]))
+
+    gt, wt = np.polynomial.legendre.leggauss(theta_nodes)
+    gp, wp = np.polynomial.legendre.leggauss(phi_nodes)
+    t_mid, t_half = 0.5 * (theta_edges[1:] + theta_edges[:-1]), 0.5 * np.diff(theta_edges)
+    p_mid, p_half = 0.5 * (phi_edges[1:] + phi_edges[:-1]), 0.5 * np.diff(phi_edges)
+    theta = (t_mid[:, None] + t_half[:, None] * gt[None, :]).ravel()
+    w_theta = (t_half[:, None] * wt[None, :]).ravel() * np.sin(theta)
+    phi = (p_mid[:, None] + p_half[:, None] * gp[None, :]).ravel()
+    w_phi = (p_half[:, None] * wp[None, :]).ravel()
+
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    grid = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+    values = eval_luminance(emitter, world_from_grid_reference(grid, to_world))
+    return float(values @ np.outer(w_theta, w_phi).ravel())
+
+
+def cell_bounds(level: int, iz: int, iphi: int):
+    cells = 1 << level
+    return (-1 + 2 * iz / cells, -1 + 2 * (iz + 1) / cells,
+            2 * np.pi * iphi / cells, 2 * np.pi * (iphi + 1) / cells)
+
+
+MAPS = {
+    "random_32x64": dict(image=random_latlong(32, 64), scale=1.0, to_world=None),
+    "sun_sky_32x64_rotated": dict(image=sun_sky_latlong(32, 64), scale=0.5, to_world=TILTED_30DEG),
+    "odd_7x13_rotated": dict(image=random_latlong(7, 13, seed=3), scale=2.0, to_world=TILTED_30DEG),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(MAPS))
+def case(request):
+    spec = MAPS[request.param]
+    emitter = envmap_emitter(spec["image"], spec["scale"], spec["to_world"])
+    return dict(spec, name=request.param, emitter=emitter, pyramid=EnvPyramid(emitter))
+
+
+# ------------------------------------------------------------- integrals
+
+
+def test_total_equals_sphere_integral_of_emitter_luminance(case):
+    reference = reference_cell_integral(case["emitter"], case["to_world"], case["image"].shape[:2],
+                                        -1.0, 1.0, 0.0, 2 * np.pi)
+    # float32 radiance in eval and in the stored root: ~1e-6 relative.
+    assert case["pyramid"].total == pytest.approx(reference, rel=1e-5)
+    assert case["pyramid"].level_numpy(0)[0, 0] == pytest.approx(reference, rel=1e-5)
+
+
+def test_total_agrees_with_brute_force_midpoint_quadrature():
+    """A check that does not use the texel layout at all (looser tolerance)."""
+    image = random_latlong(32, 64, seed=7)
+    emitter = envmap_emitter(image, 1.0, TILTED_30DEG)
+    n = 1024
+    z = -1 + (np.arange(n) + 0.5) * 2 / n
+    phi = (np.arange(2 * n) + 0.5) * np.pi / n
+    zz, pp = np.meshgrid(z, phi, indexing="ij")
+    s = np.sqrt(1 - zz ** 2)
+    grid = np.stack([s * np.cos(pp), s * np.sin(pp), zz], -1).reshape(-1, 3)
+    values = eval_luminance(emitter, world_from_grid_reference(grid, TILTED_30DEG))
+    reference = values.sum() * (2 / n) * (np.pi / n)
+    assert EnvPyramid(emitter).total == pytest.approx(reference, rel=2e-4)
+
+
+def test_constant_map_integrates_to_four_pi_radiance():
+    pyramid = EnvPyramid(envmap_emitter(constant_latlong(16, 32, 3.0), scale=2.0))
+    assert pyramid.total == pytest.approx(4 * np.pi * 6.0, rel=1e-12)
+    finest = pyramid.level_numpy(pyramid.depth)
+    np.testing.assert_allclose(finest, 6.0 * 4 * np.pi / finest.size, rtol=1e-6)
+
+
+def test_cells_match_emitter_integral_over_cell_including_poles_and_seam(case):
+    pyramid, emitter = case["pyramid"], case["emitter"]
+    rng = np.random.default_rng(1)
+    for level in sorted({1, 3, pyramid.depth}):
+        last = (1 << level) - 1
+        cells = [(0, 0), (last, last), (0, last), (last, 0), (last // 2, 0), (last // 2, last)]
+        cells += [tuple(c) for c in rng.integers(0, last + 1, size=(6, 2))]
+        values = pyramid.level_numpy(level)
+        for iz, iphi in cells:
+            reference = reference_cell_integral(emitter, case["to_world"], case["image"].shape[:2],
+                                                *cell_bounds(level, iz, iphi))
+            assert values[iz, iphi] == pytest.approx(reference, rel=2e-5, abs=1e-7 * pyramid.total), \
+                (case["name"], level, iz, iphi)
+
+
+def test_sun_smaller_than_a_cell_keeps_its_full_power():
+    """A one-texel sun in a 256x512 map inside one coarse cell is not lost or blurred away."""
+    image = sun_sky_latlong(256, 512, sun_radius_deg=0.1, sun_radiance=1e6, sky_radiance=0.0)
+    emitter = envmap_emitter(image)
+    pyramid = EnvPyramid(emitter, max_depth=6)
+    sun = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
+    grid_sun = np.array([-sun[2], -sun[0], sun[1]])
+    z, phi = grid_sun[2], np.arctan2(grid_sun[1], grid_sun[0]) % (2 * np.pi)
+    iz, iphi = int((z + 1) / 2 * 64), int(phi / (2 * np.pi) * 64)
+    reference = reference_cell_integral(emitter, None, (256, 512), *cell_bounds(6, iz, iphi))
+    finest = pyramid.level_numpy(6)
+    assert finest[iz, iphi] == pytest.approx(reference, rel=2e-5)
+    assert finest[iz, iphi] > 0.5 * pyramid.total
+
+
+# ------------------------------------------------------------- layout
+
+
+def test_parent_equals_sum_of_children_at_every_level(case):
+    pyramid = case["pyramid"]
+    for k in range(pyramid.depth):
+        parent, child = pyramid.level_numpy(k), pyramid.level_numpy(k + 1)
+        m = parent.shape[0]
+        sums = child.astype(np.float64).reshape(m, 2, m, 2).sum(axis=(1, 3))
+        np.testing.assert_allclose(parent, sums, rtol=1e-6, atol=1e-9 * pyramid.total)
+
+
+def test_children_gather_returns_the_four_children_in_ab_order(case):
+    pyramid = case["pyramid"]
+    rng = np.random.default_rng(2)
+    for level in range(pyramid.depth):
+        iz, iphi = rng.integers(0, 1 << level, size=(2, 16))
+        child = pyramid.level_numpy(level + 1)
+        expected = np.stack([child[2 * iz + a, 2 * iphi + b] for a in (0, 1) for b in (0, 1)])
+        for level_arg in (level, mi.UInt32(level)):
+            got = np.array(pyramid.children(level_arg, mi.UInt32(iz), mi.UInt32(iphi)))
+            np.testing.assert_array_equal(got, expected)
+
+
+def test_cell_integral_gathers_level_values_for_python_and_traced_levels(case):
+    pyramid = case["pyramid"]
+    rng = np.random.default_rng(4)
+    levels = rng.integers(0, pyramid.depth + 1, size=64)
+    iz = np.array([rng.integers(0, 1 << k) for k in levels])
+    iphi = np.array([rng.integers(0, 1 << k) for k in levels])
+    expected = np.array([pyramid.level_numpy(k)[a, b] for k, a, b in zip(levels, iz, iphi)])
+    got = pyramid.cell_integral(mi.UInt32(levels), mi.UInt32(iz), mi.UInt32(iphi)).numpy()
+    np.testing.assert_array_equal(got, expected)
+    assert pyramid.cell_integral(0, mi.UInt32(0), mi.UInt32(0)).numpy()[0] == np.float32(pyramid.total)
+
+
+def test_children_works_with_traced_level_inside_symbolic_loop(case):
+    """Greedy descent to the brightest leaf, in a dr.while_loop, matches numpy."""
+    pyramid = case["pyramid"]
+
+    def cond(level, iz, iphi):
+        return level < pyramid.depth
+
+    def body(level, iz, iphi):
+        c = pyramid.children(level, iz, iphi)
+        upper_z = dr.maximum(c.z, c.w) > dr.maximum(c.x, c.y)
+        upper_phi = dr.select(upper_z, c.w > c.z, c.y > c.x)
+        iz = 2 * iz + dr.select(upper_z, 1, 0)
+        iphi = 2 * iphi + dr.select(upper_phi, 1, 0)
+        return level + 1, mi.UInt32(iz), mi.UInt32(iphi)
+
+    with dr.scoped_set_flag(dr.JitFlag.SymbolicLoops, True):
+        _, iz, iphi = dr.while_loop((mi.UInt32(0), mi.UInt32(0), mi.UInt32(0)), cond, body)
+
+    ref_iz = ref_iphi = 0
+    for k in range(pyramid.depth):
+        c = pyramid.level_numpy(k + 1)[2 * ref_iz:2 * ref_iz + 2, 2 * ref_iphi:2 * ref_iphi + 2]
+        a = int(max(c[1]) > max(c[0]))
+        ref_iz, ref_iphi = 2 * ref_iz + a, 2 * ref_iphi + int(c[a, 1] > c[a, 0])
+    assert (iz.numpy()[0], iphi.numpy()[0]) == (ref_iz, ref_iphi)
+
+
+# ------------------------------------------------------------- frames
+
+
+def random_directions(n: int, seed: int = 0) -> np.ndarray:
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_grid_from_world_and_world_from_grid_are_inverse():
+    pyramid = EnvPyramid.from_latlong(random_latlong(8, 16), to_world=TILTED_30DEG)
+    d = mi.Vector3f(random_directions(1000).T.astype(np.float32))
+    there_and_back = pyramid.world_from_grid(pyramid.grid_from_world(d))
+    np.testing.assert_allclose(np.array(there_and_back), np.array(d), atol=2e-6)
+    back_and_there = pyramid.grid_from_world(pyramid.world_from_grid(d))
+    np.testing.assert_allclose(np.array(back_and_there), np.array(d), atol=2e-6)
+
+
+def test_grid_frame_is_right_handed_and_z_is_local_up():
+    pyramid = EnvPyramid.from_latlong(random_latlong(8, 16))
+    ex, ey, ez = (np.array(pyramid.world_from_grid(mi.Vector3f(*map(float, e)))).ravel() for e in np.eye(3))
+    np.testing.assert_allclose(np.cross(ex, ey), ez, atol=1e-7)
+    np.testing.assert_allclose(ez, [0, 1, 0], atol=1e-7)
+
+
+def test_grid_phi_is_two_pi_one_minus_u_and_z_is_cos_theta_of_the_emitter():
+    """Encode u and v in the texels (linear in u and theta, so bilinear lookup is
+    exact away from the seam) and read them back through the emitter's eval."""
+    height, width = 64, 128
+    image = np.zeros((height, width, 3), np.float32)
+    image[..., 0] = ((np.arange(width) + 0.5) / width)[None, :]
+    image[..., 1] = (np.arange(height) / (height - 1))[:, None]
+    emitter = envmap_emitter(image, 1.0, TILTED_30DEG)
+    pyramid = EnvPyramid(emitter)
+
+    world = random_directions(4000, seed=5)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(world))
+    si.wi = -mi.Vector3f(world.T.astype(np.float32))
+    rgb = np.array(emitter.eval(si))
+    u, v = rgb[0], rgb[1]
+
+    z, phi = pyramid.grid_coords(pyramid.grid_from_world(mi.Vector3f(world.T.astype(np.float32))))
+    z, phi = z.numpy(), phi.numpy()
+    # Between the last and the first texel column the encoded u wraps from ~1 to ~0.
+    seam_distance = np.minimum(phi, 2 * np.pi - phi) / (2 * np.pi)
+    off_seam = seam_distance > 0.5 / width + 1e-4
+    np.testing.assert_allclose(z, np.cos(np.pi * v), atol=2e-5)
+    wrapped = (phi - 2 * np.pi * (1 - u) + np.pi) % (2 * np.pi) - np.pi
+    np.testing.assert_allclose(wrapped[off_seam], 0, atol=2e-5)
+    assert off_seam.mean() > 0.95
+
+
+def test_grid_coords_handle_poles_and_seam():
+    d = mi.Vector3f([0, 0, 1, 1, 1, 0.6], [0, 0, -1e-9, 1e-9, 0, 0], [1, -1, 0, 0, 0, 0.8])
+    z, phi = EnvPyramid.grid_coords(d)
+    phi = phi.numpy()
+    assert np.all((phi >= 0) & (phi < 2 * np.pi))
+    np.testing.assert_allclose(z.numpy(), [1, -1, 0, 0, 0, 0.8])
+    np.testing.assert_allclose(phi[[0, 1, 3, 4, 5]], 0, atol=1e-6)
+    assert phi[2] == 0 or phi[2] > 2 * np.pi - 1e-6
+    pyramid = EnvPyramid.from_latlong(random_latlong(8, 16))
+    iz, iphi = pyramid.cell_index(pyramid.depth, z, mi.Float(phi))
+    cells = 1 << pyramid.depth
+    assert np.all(iz.numpy() < cells) and np.all(iphi.numpy() < cells)
+    assert iz.numpy()[0] == cells - 1 and iz.numpy()[1] == 0
+
+
+def test_cell_index_inverts_cell_bounds():
+    pyramid = EnvPyramid.from_latlong(random_latlong(8, 16))
+    level = 4
+    iz, iphi = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
+    z = -1 + (iz.ravel() + 0.5) * 2 / 16
+    phi = (iphi.ravel() + 0.5) * 2 * np.pi / 16
+    d = EnvPyramid.grid_direction(mi.Float(z), mi.Float(phi))
+    got_iz, got_iphi = pyramid.cell_index(level, *EnvPyramid.grid_coords(d))
+    np.testing.assert_array_equal(got_iz.numpy(), iz.ravel())
+    np.testing.assert_array_equal(got_iphi.numpy(), iphi.ravel())
+
+
+# ------------------------------------------------------------- construction & bad input
+
+
+def test_from_latlong_equals_pyramid_of_the_emitter():
+    image = sun_sky_latlong(16, 32)
+    a = EnvPyramid(envmap_emitter(image, 0.7, TILTED_30DEG))
+    b = EnvPyramid.from_latlong(image, scale=0.7, to_world=TILTED_30DEG)
+    # The emitter's texels can differ from the image by an ulp (bitmap conversion).
+    np.testing.assert_allclose(a.buffer.numpy(), b.buffer.numpy(), rtol=1e-6)
+    assert a.depth == b.depth and a.total == pytest.approx(b.total, rel=1e-6)
+
+
+def test_depth_follows_resolution_and_is_capped():
+    assert auto_depth(512, 1024) == 10
+    assert auto_depth(4096, 8192) == DEFAULT_MAX_DEPTH == 11
+    assert auto_depth(1, 1) == 1
+    assert auto_depth(32, 64, max_depth=4) == 4
+    pyramid = EnvPyramid(envmap_emitter(random_latlong(32, 64)), max_depth=3)
+    assert pyramid.depth == 3
+    assert pyramid.nbytes == pyramid.buffer.numpy().nbytes == 4 * 4 * (1 + (4 ** 3 - 1) // 3)
+    assert pyramid.build_time_s >= 0
+    with pytest.raises(ValueError):
+        EnvPyramid(envmap_emitter(random_latlong(4, 8)), max_depth=0)
+
+
+def test_nan_inf_and_negative_texels_count_as_zero_with_one_warning():
+    image = random_latlong(16, 32, seed=9)
+    bad = image.copy()
+    bad[3, 4] = np.nan
+    bad[5, 0] = np.inf
+    bad[0, 31] = -2.0
+    bad[15, 7, 1] = -np.inf
+    clean = image.copy()
+    clean[3, 4] = clean[5, 0] = clean[0, 31] = clean[15, 7] = 0
+    with pytest.warns(RuntimeWarning, match=r"\b4 envmap texel") as record:
+        pyramid = EnvPyramid(envmap_emitter(bad))
+    assert len(record) == 1
+    expected = EnvPyramid(envmap_emitter(clean))
+    np.testing.assert_array_equal(pyramid.buffer.numpy(), expected.buffer.numpy())
+    assert np.isfinite(pyramid.total) and pyramid.total > 0
+
+
+def test_all_zero_map_gives_black_pyramid():
+    pyramid = EnvPyramid(envmap_emitter(np.zeros((16, 32, 3), np.float32)))
+    assert pyramid.is_black and pyramid.total == 0.0
+    assert not np.any(pyramid.buffer.numpy())
+    assert not EnvPyramid(envmap_emitter(random_latlong(4, 8))).is_black
+
+
+def test_one_texel_map_is_constant_radiance():
+    image = np.full((1, 1, 3), [1.0, 2.0, 3.0], np.float32)
+    luminance = float(image[0, 0] @ [0.212671, 0.715160, 0.072169])
+    from_image = EnvPyramid.from_latlong(image)
+    from_emitter = EnvPyramid(envmap_emitter(image))
+    for pyramid in (from_image, from_emitter):
+        assert pyramid.total == pytest.approx(4 * np.pi * luminance, rel=1e-6)
+        finest = pyramid.level_numpy(pyramid.depth)
+        np.testing.assert_allclose(finest, finest.flat[0], rtol=1e-6)
+
+
+def test_luminance_only_image_is_accepted():
+    image = random_latlong(8, 16)
+    luminance = image.astype(np.float64) @ [0.212671, 0.715160, 0.072169]
+    a = EnvPyramid.from_latlong(image)
+    b = EnvPyramid.from_latlong(luminance)
+    np.testing.assert_allclose(a.buffer.numpy(), b.buffer.numpy(), rtol=1e-6)
+
+
+def test_non_envmap_emitter_is_a_type_error():
+    with pytest.raises(TypeError, match="envmap"):
+        EnvPyramid(mi.load_dict({"type": "constant"}))
+    with pytest.raises(TypeError, match="envmap"):
+        EnvPyramid(mi.load_dict({"type": "diffuse"}))
+
+
+def test_negative_scale_and_non_rotation_to_world_are_value_errors():
+    with pytest.raises(ValueError, match="scale"):
+        EnvPyramid.from_latlong(random_latlong(4, 8), scale=-1.0)
+    with pytest.raises(ValueError, match="rotation"):
+        EnvPyramid.from_latlong(random_latlong(4, 8), to_world=mi.ScalarAffineTransform4f().scale(2.0))
+
+
+# ------------------------------------------------------------- real maps
+
+
+@pytest.mark.skipif(not glob.glob(os.path.join(ENVMAP_DIR, "*.hdr")), reason="no /work/shared/envmaps")
+def test_real_envmap_total_and_cells_match_emitter():
+    path = sorted(glob.glob(os.path.join(ENVMAP_DIR, "*.hdr")))[0]
+    emitter = mi.load_dict({"type": "envmap", "filename": path})
+    pyramid = EnvPyramid(emitter)
+    height, width = mi.traverse(emitter)["data"].shape[:2]
+    texels = (height, width - 2)
+    assert pyramid.depth == auto_depth(*texels)
+    reference = reference_cell_integral(emitter, None, texels, -1.0, 1.0, 0.0, 2 * np.pi,
+                                        theta_nodes=2, phi_nodes=1)
+    assert pyramid.total == pytest.approx(reference, rel=1e-4)
+    rng = np.random.default_rng(6)
+    finest = pyramid.level_numpy(pyramid.depth)
+    for iz, iphi in rng.integers(0, 1 << pyramid.depth, size=(8, 2)):
+        cell = reference_cell_integral(emitter, None, texels, *cell_bounds(pyramid.depth, iz, iphi))
+        assert finest[iz, iphi] == pytest.approx(cell, rel=2e-5, abs=1e-7 * pyramid.total)
