@@ -137,3 +137,31 @@ def sh_eval_sum(coeffs, d):
     for ci, yi in zip(coeffs[1:], basis[1:]):
         acc = dr.fma(ci, yi, acc)
     return acc
+
+
+def sh_eval_sum_on_circle(coeffs, z, phis: list) -> list:
+    """Evaluate the SH expansion at one z and several azimuths per lane.
+
+    Separable: B[m] = sum_l f_l^m Qb_l^|m|(z) costs n^2 multiply-adds once,
+    then each azimuth costs O(n). Returns one array per entry of ``phis``.
+    """
+    order = bands_of(coeffs) - 1
+    q = reduced_legendre(z, order)
+    s = dr.safe_sqrt(dr.fma(-z, z, 1.0))
+    b = {}
+    for m in range(-order, order + 1):
+        acc = None
+        for l in range(abs(m), order + 1):
+            t = coeffs[sh_index(l, m)] * q[l, abs(m)]
+            acc = t if acc is None else acc + t
+        b[m] = acc
+    out = []
+    for phi in phis:
+        sin_phi, cos_phi = dr.sincos(phi)
+        # (s cos phi + i s sin phi)^m gives sin^m(theta) cos/sin(m phi)
+        c, sn = azimuthal_powers(s * cos_phi, s * sin_phi, order)
+        acc = b[0]
+        for m in range(1, order + 1):
+            acc += math.sqrt(2.0) * (b[m] * c[m] + b[-m] * sn[m])
+        out.append(acc)
+    return out
