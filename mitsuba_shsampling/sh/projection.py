@@ -1,0 +1,85 @@
+"""Projection of spherical functions onto the real SH basis by quadrature.
+
+The rule is a product of Gauss-Legendre in z = cos(theta) and the uniform
+(midpoint) rule in phi. With ``n_z`` >= n and ``n_phi`` >= 2n - 1 it is exact
+for every function band-limited to n bands: the integrand f y_l^m then
+reduces, after the phi sum (exact for trigonometric polynomials of degree
+< n_phi), to a polynomial in z of degree <= 2n - 2 (exact for Gauss-Legendre
+with n_z >= n nodes). Functions that are not band-limited (lobes with a kink
+at the horizon, sharp lobes) need more nodes in both directions.
+Conventions: real SH, CS phase, z-up, index ``l*(l+1)+m`` (``sh.basis``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .basis import sh_eval
+
+
+def quadrature_rule(n_z: int, n_phi: int) -> tuple:
+    """Directions and solid-angle weights of the (z, phi) product rule.
+
+    The Gauss-Legendre nodes and weights come from numpy in float64 (no
+    accuracy limit at large ``n_z``, unlike a float32 rule) and are rounded
+    once to float32. Lane ``i * n_phi + j`` holds z-node i and azimuth
+    phi_j = 2 pi (j + 1/2) / n_phi. The weights sum to 4 pi.
+
+    Returns ``(mi.Vector3f directions, mi.Float weights)`` with
+    ``n_z * n_phi`` lanes.
+    """
+    for name, value in (("n_z", n_z), ("n_phi", n_phi)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    z, wz = np.polynomial.legendre.leggauss(n_z)
+    phi = 2 * math.pi * (np.arange(n_phi) + 0.5) / n_phi
+    zz, pp = np.meshgrid(z, phi, indexing="ij")
+    sin_theta = np.sqrt(np.maximum(0.0, 1.0 - zz * zz))
+    d = mi.Vector3f((sin_theta * np.cos(pp)).ravel(), (sin_theta * np.sin(pp)).ravel(),
+                    zz.ravel())
+    w = mi.Float(np.repeat(wz * (2 * math.pi / n_phi), n_phi))
+    return d, w
+
+
+def project(func: Callable, n_bands: int, n_z: int | None = None,
+            n_phi: int | None = None) -> list:
+    """SH coefficients f_i = integral f(omega) y_i(omega) d omega by quadrature.
+
+    Parameter ``func``:
+        Callable taking an ``mi.Vector3f`` of unit directions (z-up, many
+        lanes) and returning the function value per lane, as an ``mi.Float``
+        or a numpy array (a scalar/numpy reference can call ``d.numpy()``).
+        Non-finite values raise ``ValueError``.
+
+    Parameter ``n_bands`` (int):
+        Number of bands n of the result (n <= 32).
+
+    Parameters ``n_z``, ``n_phi`` (int):
+        Quadrature size; defaults n and 2n - 1 are exact for band-limited
+        input (see the module docstring).
+
+    Returns a list of n^2 ``mi.Float`` (one lane each); the lane sums are
+    accumulated in float64.
+    """
+    if isinstance(n_bands, bool) or not isinstance(n_bands, int) or n_bands < 1:
+        raise ValueError(f"n_bands must be a positive int, got {n_bands!r}")
+    d, w = quadrature_rule(n_z or n_bands, n_phi or 2 * n_bands - 1)
+    values = func(d)
+    if not dr.is_array_v(values):
+        values = np.asarray(values, dtype=np.float32)
+        if values.size not in (1, dr.width(d)):
+            raise ValueError(f"func returned {values.size} values for {dr.width(d)} directions")
+        values = mi.Float(values.ravel())
+    elif dr.width(values) not in (1, dr.width(d)):
+        raise ValueError(f"func returned {dr.width(values)} values for {dr.width(d)} directions")
+    if not dr.all(dr.isfinite(values), axis=None):
+        raise ValueError("func returned non-finite values")
+
+    weighted = w * values
+    Float64 = dr.float64_array_t(mi.Float)
+    return [mi.Float(dr.sum(Float64(weighted * y))) for y in sh_eval(d, n_bands - 1)]
