@@ -1,0 +1,171 @@
+"""Command line: ``mitsuba-shsampling compare|bench`` (also ``python -m mitsuba_shsampling``).
+
+Exit codes: 0 success, 2 bad input (missing scene or map, unknown method or
+variant, invalid option), 1 any other failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+DEFAULT_VARIANT = "llvm_ad_rgb"
+SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler")
+DEFAULT_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "mitsuba-shsampling")
+
+
+class UsageError(Exception):
+    """Bad input from the command line: reported in one line, exit code 2."""
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mitsuba-shsampling",
+                                     description="SH product sampling for Mitsuba 3: comparisons and benchmarks")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--variant", default=DEFAULT_VARIANT, help="Mitsuba JIT variant (default %(default)s)")
+    common.add_argument("--res", type=_positive, default=128, help="image width and height (default %(default)s)")
+    common.add_argument("--ref-spp", type=_positive, default=1024, help="reference spp (default %(default)s)")
+    common.add_argument("--cache-dir", default=DEFAULT_CACHE, help="reference cache (default %(default)s)")
+    common.add_argument("--no-progress", action="store_true", help="hide progress bars")
+
+    compare = sub.add_parser("compare", parents=[common],
+                             help="render every method at equal samples and equal time, write a report")
+    compare.add_argument("scenes", nargs="*", metavar="SCENE.xml",
+                         help="scene files (default: the built-in spheres scene)")
+    compare.add_argument("--out", default="report", help="report folder (default %(default)s)")
+    compare.add_argument("--spp", type=_positive, default=16, help="samples per pixel at 2 rays each (default %(default)s)")
+    compare.add_argument("--passes", type=int, default=4, help="independent passes per method, >= 2 (default %(default)s)")
+    compare.add_argument("--envmap", help="lat-long map replacing the scene's environment")
+    compare.add_argument("--methods", help="comma-separated method names (default: all available)")
+    compare.add_argument("--sampler", default="independent,multijitter",
+                         help=f"comma-separated samplers among {', '.join(SAMPLERS)} (default %(default)s)")
+    compare.add_argument("--seed", type=int, default=0, help="seed of the first pass (default %(default)s)")
+    compare.add_argument("--max-depth", type=int, default=2,
+                         help="2: direct lighting; > 2 adds the multi-bounce path methods (default %(default)s)")
+    compare.add_argument("--convergence-max-spp", type=int, default=None,
+                         help="largest spp of the convergence sweep (default 4 x spp, 0 disables)")
+
+    bench = sub.add_parser("bench", parents=[common], help="run scripts/bench_*.py and an error-vs-time sweep")
+    bench.add_argument("--out", default="bench", help="output folder (default %(default)s)")
+    bench.add_argument("--quick", action="store_true", help="passed on to the benchmark scripts; smaller sweep")
+    bench.add_argument("--sampler", default="independent", choices=SAMPLERS)
+    bench.add_argument("--max-spp", type=_positive, default=None, help="largest spp of the sweep (default 256, quick 16)")
+    return parser
+
+
+def _set_variant(variant: str) -> None:
+    import mitsuba_shsampling  # noqa: F401  (checks the LLVM backend before Mitsuba traces anything)
+    import mitsuba as mi
+
+    if not variant.startswith(("llvm_", "cuda_")):
+        raise UsageError(f"variant '{variant}' is not supported: the package needs a JIT variant "
+                         f"(e.g. {DEFAULT_VARIANT})")
+    if variant not in mi.variants():
+        raise UsageError(f"variant '{variant}' is not available in this Mitsuba build "
+                         f"(available: {', '.join(v for v in mi.variants() if v.startswith(('llvm_', 'cuda_')))})")
+    try:
+        mi.set_variant(variant)
+    except Exception as err:  # e.g. a cuda_ variant on a machine without a GPU
+        raise UsageError(f"variant '{variant}' cannot be used here: {str(err).splitlines()[0]}") from None
+
+
+def _split(text: str | None) -> list[str] | None:
+    return [t.strip() for t in text.split(",") if t.strip()] if text else None
+
+
+def _compare(args) -> int:
+    for path in args.scenes:
+        if not os.path.isfile(path):
+            raise UsageError(f"scene file not found: {path}")
+    if args.envmap and not os.path.isfile(args.envmap):
+        raise UsageError(f"environment map not found: {args.envmap}")
+    if args.passes < 2:
+        raise UsageError("--passes must be at least 2 (variance and bias need several passes)")
+    samplers = _split(args.sampler) or []
+    unknown = [s for s in samplers if s not in SAMPLERS]
+    if unknown or not samplers:
+        raise UsageError(f"unknown sampler(s) {', '.join(unknown) or '(none)'}; choose among {', '.join(SAMPLERS)}")
+    _set_variant(args.variant)
+
+    from . import scenes
+    from .report.compare import CompareSettings, run_compare
+    from .report.methods import method_by_name
+
+    methods = _split(args.methods)
+    for name in methods or []:
+        try:
+            method_by_name(name)
+        except ValueError as err:
+            raise UsageError(str(err)) from None
+    paths = args.scenes or [scenes.default_scene_path()]
+    for path in paths:
+        if args.envmap and "envmap" not in scenes.scene_parameters(path):
+            raise UsageError(f"--envmap: {path} declares no $envmap parameter to swap")
+    settings = CompareSettings(out=args.out, res=args.res, spp=args.spp, passes=args.passes,
+                               ref_spp=args.ref_spp, samplers=tuple(samplers),
+                               methods=tuple(methods) if methods else None, envmap=args.envmap,
+                               max_depth=args.max_depth, seed=args.seed,
+                               convergence_max_spp=args.convergence_max_spp,
+                               cache_dir=args.cache_dir, progress=not args.no_progress)
+    report = run_compare(paths, settings)
+    for scene in report["scenes"]:
+        for note in scene["notes"]:
+            print(f"note ({scene['scene']}): {note}")
+        for run in scene["runs"]:
+            print(f"\n{scene['scene']} [{run['sampler']}]  {'method':<16}{'spp':>5}{'MSE':>11}"
+                  f"{'relMSE':>10}{'time(s)':>9}{'eff/base':>9}  | equal time: {'spp':>4}{'MSE':>11}{'eff/base':>9}  bias")
+            for name, entry in run["methods"].items():
+                a, b = entry["equal_spp"], entry["equal_time"]
+                ratio_a = a.get("efficiency_ratio_vs_baseline")
+                ratio_b = b.get("efficiency_ratio_vs_baseline")
+                print(f"{'':>{len(scene['scene']) + len(run['sampler']) + 4}}{name:<16}{a['spp']:>5}{a['mse']:>11.3e}"
+                      f"{a['rel_mse']:>10.3e}{a['time_s']:>9.3f}{(ratio_a or float('nan')):>9.2f}  |"
+                      f"{'':>13}{b['spp']:>4}{b['mse']:>11.3e}{(ratio_b or float('nan')):>9.2f}  "
+                      f"{'ok' if a['bias_ok'] and b['bias_ok'] else 'FAIL'}")
+    print(f"\nreport: {os.path.join(os.path.abspath(args.out), 'index.html')}")
+    return 0
+
+
+def _bench(args) -> int:
+    _set_variant(args.variant)
+    from .report.bench import run_bench
+
+    max_spp = args.max_spp or (16 if args.quick else 256)
+    res = min(args.res, 64) if args.quick else args.res
+    summary = run_bench(args.out, args.quick, res, args.sampler, max_spp, args.ref_spp,
+                        args.cache_dir, progress=not args.no_progress)
+    for script in summary["scripts"]:
+        print(f"{script['script']}: exit {script['returncode']}, {script['time_s']:.1f} s, "
+              f"JSON: {', '.join(script['results']) or 'none'}")
+    print(f"sweep: {os.path.join(os.path.abspath(args.out), 'sweep.json')}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``mitsuba-shsampling`` console script; returns the exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        return _compare(args) if args.command == "compare" else _bench(args)
+    except UsageError as err:
+        print(f"mitsuba-shsampling: error: {err}", file=sys.stderr)
+        return 2
+    except Exception as err:
+        from .scenes import SceneError
+        if isinstance(err, SceneError):
+            print(f"mitsuba-shsampling: error: {err}", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Comparison reports: methods, renders, metrics, figures and the HTML page of ``compare``/``bench``."""

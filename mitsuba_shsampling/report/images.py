@@ -1,0 +1,56 @@
+"""Image files of a report: EXR renders, tone-mapped and false-colour PNGs, base64 embedding."""
+
+from __future__ import annotations
+
+import base64
+import io
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def tonemap(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """Linear RGB (H, W, 3) radiance -> sRGB-encoded uint8 (H, W, 3), clipped at 1."""
+    x = np.clip(np.nan_to_num(image[..., :3] * exposure, nan=0.0, posinf=1.0), 0.0, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return np.round(srgb * 255).astype(np.uint8)
+
+
+def false_colour(values: np.ndarray, vmin: float, vmax: float, cmap: str = "inferno") -> np.ndarray:
+    """Scalar map (H, W) -> uint8 RGB (H, W, 3) on a log scale from vmin to vmax (both > 0)."""
+    vmin = max(vmin, 1e-30)
+    vmax = max(vmax, vmin * 10)
+    t = (np.log10(np.clip(values, vmin, vmax)) - np.log10(vmin)) / (np.log10(vmax) - np.log10(vmin))
+    return np.round(plt.get_cmap(cmap)(np.nan_to_num(t))[..., :3] * 255).astype(np.uint8)
+
+
+def log_range(maps: list[np.ndarray], low_quantile: float = 0.02) -> tuple[float, float]:
+    """Shared log-scale range of several non-negative maps: (a low quantile of positives, max)."""
+    values = np.concatenate([m.ravel() for m in maps])
+    positive = values[values > 0]
+    if positive.size == 0:
+        return 1e-6, 1e-5
+    return float(np.quantile(positive, low_quantile)), float(positive.max())
+
+
+def png_bytes(rgb8: np.ndarray) -> bytes:
+    """Encode a uint8 RGB image (H, W, 3) as PNG."""
+    buffer = io.BytesIO()
+    plt.imsave(buffer, rgb8, format="png")
+    return buffer.getvalue()
+
+
+def write_png(path: str, rgb8: np.ndarray) -> bytes:
+    """Write a uint8 RGB image as PNG; returns the encoded bytes (for embedding)."""
+    data = png_bytes(rgb8)
+    with open(path, "wb") as f:
+        f.write(data)
+    return data
+
+
+def data_uri(png: bytes) -> str:
+    """``data:`` URI of PNG bytes, for a self-contained HTML page."""
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")

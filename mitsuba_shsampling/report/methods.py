@@ -1,0 +1,144 @@
+"""The rendering methods a comparison runs: one small declarative entry each.
+
+A :class:`Method` says which integrator to load, which scene parameters it
+needs (``mis_compensation`` builds the envmap differently) and how many shading
+rays one pixel sample costs, so that equal-sample comparisons count rays
+(see /work/shared/design/evaluation.md). Methods that need a plugin this
+process cannot load (the project's ``sh_direct``/``sh_path`` before they
+exist, or on a variant they are not registered for) are left out with a note
+by :func:`available_methods`; nothing else has to change when they appear.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+
+import mitsuba as mi
+
+#: Direct-lighting methods; their reference is ``path`` with max_depth 2.
+DIRECT = "direct"
+#: Multi-bounce methods; their reference is ``path`` with the same max_depth.
+MULTI_BOUNCE = "path"
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """One rendering strategy of a comparison.
+
+    :param name: identifier used on the command line and in report files.
+    :param label: human-readable description for tables and figures.
+    :param integrator: ``mi.load_dict`` description of the integrator; for the multi-bounce
+        family ``max_depth`` is added at load time.
+    :param family: :data:`DIRECT` or :data:`MULTI_BOUNCE` (decides the reference).
+    :param rays_per_sample: shading rays traced per pixel sample (per bounce for the
+        multi-bounce family); equal-sample comparisons give each method
+        ``spp * 2 / rays_per_sample`` samples.
+    :param scene_params: extra scene parameters (e.g. ``{"mis_compensation": True}``).
+    :param plugin: integrator plugin type that must be loadable for the method to run.
+    :param product_sampling: whether the method samples the environment with the SH product
+        (only meaningful on scenes with an envmap).
+    """
+
+    name: str
+    label: str
+    integrator: dict
+    family: str = DIRECT
+    rays_per_sample: int = 2
+    scene_params: dict = dataclasses.field(default_factory=dict)
+    plugin: str | None = None
+    product_sampling: bool = False
+
+    def load_integrator(self, max_depth: int) -> mi.Integrator:
+        """Instantiate the integrator (``max_depth`` applies to the multi-bounce family)."""
+        desc = dict(self.integrator)
+        if self.family == MULTI_BOUNCE:
+            desc["max_depth"] = max_depth
+        return mi.load_dict(desc)
+
+
+#: Every method of evaluation.md, in report order.
+METHODS: tuple[Method, ...] = (
+    Method("direct", "direct 1+1 (envmap + BSDF, MIS)", {"type": "direct"}),
+    Method("direct_misc", "direct 1+1, envmap with MIS compensation", {"type": "direct"},
+           scene_params={"mis_compensation": True}),
+    Method("env_only", "envmap sampling only (2 samples)",
+           {"type": "direct", "emitter_samples": 2, "bsdf_samples": 0}),
+    Method("bsdf_only", "BSDF sampling only (2 samples)",
+           {"type": "direct", "emitter_samples": 0, "bsdf_samples": 2}),
+    Method("sh_direct", "SH product + BSDF (MIS)",
+           {"type": "sh_direct", "emitter_samples": 1, "bsdf_samples": 1},
+           plugin="sh_direct", product_sampling=True),
+    Method("sh_product_only", "SH product sampling only (2 samples)",
+           {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0},
+           plugin="sh_direct", product_sampling=True),
+    Method("path", "path tracer (envmap + BSDF, MIS)", {"type": "path"}, family=MULTI_BOUNCE),
+    Method("sh_path", "SH product path tracer", {"type": "sh_path"}, family=MULTI_BOUNCE,
+           plugin="sh_path", product_sampling=True),
+)
+
+#: The method every equal-time budget is measured against.
+BASELINE = "direct"
+MULTI_BOUNCE_BASELINE = "path"
+
+
+def method_by_name(name: str) -> Method:
+    """Look a method up by name; raises ValueError listing the known names."""
+    for method in METHODS:
+        if method.name == name:
+            return method
+    raise ValueError(f"unknown method '{name}' (known: {', '.join(m.name for m in METHODS)})")
+
+
+def plugin_status(plugin: str) -> str | None:
+    """None if integrator ``plugin`` loads in the active variant, else why not (one line).
+
+    Imports ``mitsuba_shsampling.integrators`` first (and calls its ``register()`` if it has
+    one), so the project's plugins are found as soon as they exist.
+    """
+    try:
+        integrators = importlib.import_module("mitsuba_shsampling.integrators")
+        register = getattr(integrators, "register", None)
+        if callable(register):
+            register()
+    except Exception as err:  # a broken or missing plugin package must not stop the baselines
+        import_note = f"importing mitsuba_shsampling.integrators failed ({type(err).__name__}: {err})"
+    else:
+        import_note = None
+    try:
+        mi.load_dict({"type": plugin})
+    except Exception as err:
+        message = str(err).strip()
+        if "not found" in message:
+            reason = "no such plugin is registered"
+        else:
+            reason = message.splitlines()[0] if message else type(err).__name__
+        return f"integrator '{plugin}' is not available in {mi.variant()} ({import_note or reason})"
+    return None
+
+
+def available_methods(names: list[str] | None = None, multi_bounce: bool = False
+                      ) -> tuple[list[Method], list[str]]:
+    """Methods to run, and notes about the ones left out.
+
+    :param names: requested method names (None: all methods of the chosen families).
+    :param multi_bounce: include the multi-bounce family (``path`` vs ``sh_path``); the
+        direct-lighting family is included unless ``names`` excludes it.
+    :returns: (runnable methods in report order, one note per skipped method).
+    """
+    if names is not None:
+        chosen = [method_by_name(n) for n in names]
+    else:
+        chosen = [m for m in METHODS if m.family == DIRECT or multi_bounce]
+    runnable, notes = [], []
+    status_cache: dict[str, str | None] = {}
+    for method in chosen:
+        if method.plugin is not None:
+            if method.plugin not in status_cache:
+                status_cache[method.plugin] = plugin_status(method.plugin)
+            why = status_cache[method.plugin]
+            if why is not None:
+                notes.append(f"skipped '{method.name}': {why}")
+                continue
+        runnable.append(method)
+    return runnable, notes

@@ -1,0 +1,113 @@
+"""Built-in scenes and environment maps, and a loader that sets their parameters.
+
+The scenes in ``scenes/`` (next to the package) are Mitsuba 3 XML files whose
+settings are ``<default name=...>`` parameters:
+
+================== =========================================================
+``envmap``         lat-long map file of the ``envmap`` emitter
+``mis_compensation`` ``true``/``false``: the envmap's MIS compensation
+``res``            image width and height (pixels)
+``spp``            samples per pixel of the sensor's sampler
+``sampler``        sampler plugin (``independent``, ``stratified``, ...)
+``integrator``     integrator plugin used by ``mi.load_file`` alone
+================== =========================================================
+
+The integrator is normally supplied at render time
+(``mi.render(scene, integrator=...)``), so one scene serves every method.
+A scene may declare only some of these (``area_light.xml`` has no envmap);
+:func:`load_scene` passes only the parameters a scene declares, because
+Mitsuba rejects unused ones.
+"""
+
+from __future__ import annotations
+
+import os
+import xml.etree.ElementTree as ET
+
+import mitsuba as mi
+
+#: Folder of the built-in XML scenes.
+SCENES_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "scenes"))
+#: Folder of the built-in environment maps.
+TEXTURES_DIR = os.path.join(SCENES_DIR, "textures")
+#: Mitsuba's ``sunsky`` (Hosek-Wilkie sky + sun 35 degrees up) baked by scripts/bake_sunsky.py.
+SUNSKY_MAP = os.path.join(TEXTURES_DIR, "sunsky.exr")
+#: Three softboxes on a dim room, made by scripts/make_studio_envmap.py.
+STUDIO_MAP = os.path.join(TEXTURES_DIR, "studio.exr")
+
+DEFAULT_SCENE = "spheres"
+
+
+class SceneError(ValueError):
+    """A scene file is missing, unreadable, or lacks a requested parameter."""
+
+
+def builtin_scenes() -> dict[str, str]:
+    """Name (file stem) -> absolute path of every built-in scene, sorted by name."""
+    names = sorted(f for f in os.listdir(SCENES_DIR) if f.endswith(".xml"))
+    return {f[:-4]: os.path.join(SCENES_DIR, f) for f in names}
+
+
+def builtin_envmaps() -> dict[str, str]:
+    """Name (file stem) -> absolute path of the environment maps shipped in ``scenes/textures``."""
+    names = sorted(f for f in os.listdir(TEXTURES_DIR) if f.endswith((".exr", ".hdr")))
+    return {os.path.splitext(f)[0]: os.path.join(TEXTURES_DIR, f) for f in names}
+
+
+def default_scene_path() -> str:
+    """The scene ``compare`` renders when given none: the 3x3 material grid under the sun-and-sky map."""
+    return builtin_scenes()[DEFAULT_SCENE]
+
+
+def scene_parameters(path: str) -> dict[str, str]:
+    """The ``<default name=... value=...>`` parameters a scene file declares (top level)."""
+    if not os.path.isfile(path):
+        raise SceneError(f"scene file not found: {path}")
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as err:
+        raise SceneError(f"cannot parse scene file {path}: {err}") from None
+    return {el.get("name"): el.get("value") for el in root.findall("default")}
+
+
+def scene_envmap(scene: mi.Scene) -> mi.Emitter | None:
+    """The scene's ``envmap`` emitter, or None (no environment, or another infinite emitter)."""
+    env = scene.environment()
+    if env is None or "data" not in mi.traverse(env).keys():
+        return None
+    return env
+
+
+def load_scene(path: str, envmap: str | None = None, mis_compensation: bool = False,
+               res: int | None = None, spp: int | None = None, sampler: str | None = None,
+               **params) -> mi.Scene:
+    """Load a scene file, setting the parameters it declares.
+
+    :param path: XML scene file.
+    :param envmap: lat-long map replacing the scene's ``$envmap`` (None keeps its default).
+    :param mis_compensation: value of ``$mis_compensation`` (ignored if the scene has no envmap
+        parameter; requesting True for such a scene raises :class:`SceneError`).
+    :param res: image width and height in pixels (``$res``), None keeps the default.
+    :param spp: samples per pixel (``$spp``), None keeps the default.
+    :param sampler: sampler plugin name (``$sampler``), None keeps the default.
+    :param params: further ``$name`` parameters, passed as strings.
+    :raises SceneError: missing file, or a requested parameter the scene does not declare.
+    """
+    declared = scene_parameters(path)
+    wanted = dict(params)
+    if envmap is not None:
+        if not os.path.isfile(envmap):
+            raise SceneError(f"environment map not found: {envmap}")
+        wanted["envmap"] = os.path.abspath(envmap)
+    if "mis_compensation" in declared:
+        wanted["mis_compensation"] = "true" if mis_compensation else "false"
+    elif mis_compensation:
+        raise SceneError(f"{path} declares no $mis_compensation parameter")
+    for name, value in (("res", res), ("spp", spp), ("sampler", sampler)):
+        if value is not None:
+            wanted[name] = value
+    undeclared = sorted(set(wanted) - set(declared))
+    if undeclared:
+        raise SceneError(f"{path} does not declare the parameter(s) {', '.join(undeclared)} "
+                         f"(it declares: {', '.join(sorted(declared)) or 'none'})")
+    return mi.load_file(path, **{k: str(v) for k, v in wanted.items()})
