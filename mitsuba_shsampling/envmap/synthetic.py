@@ -11,15 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def latlong_directions(height: int, width: int) -> np.ndarray:
-    """Local (+Y-up) unit directions of the texel centres, shape (H, W, 3)."""
-    theta = np.arange(height) * np.pi / max(height - 1, 1)
-    u = (np.arange(width) + 0.5) / width
-    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
-    sp, cp = np.sin(2 * np.pi * u)[None, :], np.cos(2 * np.pi * u)[None, :]
-    return np.stack(np.broadcast_arrays(sp * st, ct + 0 * sp, -cp * st), axis=-1)
-
-
 def constant_latlong(height: int, width: int, value: float = 1.0) -> np.ndarray:
     """Uniform grey map of radiance ``value``, shape (H, W, 3), float32."""
     return np.full((height, width, 3), value, dtype=np.float32)
@@ -37,17 +28,22 @@ def sun_sky_latlong(height: int, width: int, sun_direction=(0.3, 0.8, -0.5),
     has both a smooth part and a feature far below the texel scale of a
     coarse grid: the hard case for resampling and for samplers.
     """
-    dirs = latlong_directions(height, width)
     sun = np.asarray(sun_direction, dtype=np.float64)
     sun = sun / np.linalg.norm(sun)
-    elevation = dirs[..., 1]
-    sky = sky_radiance * (0.1 + 0.9 * np.clip(elevation, 0.0, 1.0))
-    image = sky[..., None] * np.array([0.6, 0.8, 1.0])
-    cos_to_sun = dirs @ sun
+    # Separable in (row, column): no (H, W, 3) float64 temporaries for 8k maps.
+    theta = np.arange(height) * np.pi / max(height - 1, 1)
+    u = (np.arange(width) + 0.5) / width
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    sp, cp = np.sin(2 * np.pi * u)[None, :], np.cos(2 * np.pi * u)[None, :]
+    cos_to_sun = (st * (sp * sun[0] - cp * sun[2]) + ct * sun[1]).astype(np.float32)
+
+    sky = (sky_radiance * (0.1 + 0.9 * np.clip(np.cos(theta), 0.0, 1.0))).astype(np.float32)
+    image = np.empty((height, width, 3), dtype=np.float32)
+    image[:] = sky[:, None, None] * np.array([0.6, 0.8, 1.0], dtype=np.float32)
     in_sun = cos_to_sun >= np.cos(np.radians(sun_radius_deg))
     in_sun.flat[np.argmax(cos_to_sun)] = True
-    image[in_sun] = sun_radiance * np.array([1.0, 0.95, 0.85])
-    return image.astype(np.float32)
+    image[in_sun] = sun_radiance * np.array([1.0, 0.95, 0.85], dtype=np.float32)
+    return image
 
 
 def envmap_emitter(image: np.ndarray, scale: float = 1.0, to_world=None):
