@@ -21,6 +21,9 @@ import numpy as np
 
 from .basis import sh_eval
 
+PROJECTION_CHUNK = 1 << 14
+"""Directions per basis evaluation: bounds the (n^2 x chunk) float32 table to 64 MiB at 32 bands."""
+
 
 def quadrature_rule(n_z: int, n_phi: int) -> tuple:
     """Directions and solid-angle weights of the (z, phi) product rule.
@@ -63,23 +66,32 @@ def project(func: Callable, n_bands: int, n_z: int | None = None,
         Quadrature size; defaults n and 2n - 1 are exact for band-limited
         input (see the module docstring).
 
-    Returns a list of n^2 ``mi.Float`` (one lane each); the lane sums are
-    accumulated in float64.
+    Returns a list of n^2 ``mi.Float`` (one lane each). The basis is evaluated
+    in float32 and the weighted sums are accumulated in float64.
     """
     if isinstance(n_bands, bool) or not isinstance(n_bands, int) or n_bands < 1:
         raise ValueError(f"n_bands must be a positive int, got {n_bands!r}")
     d, w = quadrature_rule(n_z or n_bands, n_phi or 2 * n_bands - 1)
+    n_points = dr.width(d)
     values = func(d)
-    if not dr.is_array_v(values):
-        values = np.asarray(values, dtype=np.float32)
-        if values.size not in (1, dr.width(d)):
-            raise ValueError(f"func returned {values.size} values for {dr.width(d)} directions")
-        values = mi.Float(values.ravel())
-    elif dr.width(values) not in (1, dr.width(d)):
-        raise ValueError(f"func returned {dr.width(values)} values for {dr.width(d)} directions")
-    if not dr.all(dr.isfinite(values), axis=None):
+    if dr.is_array_v(values):
+        values = values.numpy()
+    values = np.broadcast_to(np.asarray(values, dtype=np.float64).ravel(), (n_points,)) \
+        if np.size(values) in (1, n_points) else None
+    if values is None:
+        raise ValueError(f"func must return one value per direction ({n_points})")
+    if not np.all(np.isfinite(values)):
         raise ValueError("func returned non-finite values")
 
-    weighted = w * values
-    Float64 = dr.float64_array_t(mi.Float)
-    return [mi.Float(dr.sum(Float64(weighted * y))) for y in sh_eval(d, n_bands - 1)]
+    # Evaluate the basis chunk by chunk in one kernel each and reduce in numpy
+    # (float64): one Dr.Jit reduction per coefficient would re-trace the whole
+    # basis recurrence into n^2 separate kernels.
+    weighted = w.numpy().astype(np.float64) * values
+    coeffs = np.zeros(n_bands * n_bands)
+    for start in range(0, n_points, PROJECTION_CHUNK):
+        idx = mi.UInt32(np.arange(start, min(start + PROJECTION_CHUNK, n_points), dtype=np.uint32))
+        basis = sh_eval(dr.gather(mi.Vector3f, d, idx), n_bands - 1)
+        dr.eval(basis)
+        rows = np.stack([y.numpy() for y in basis]).astype(np.float64)
+        coeffs += rows @ weighted[start:start + PROJECTION_CHUNK]
+    return [mi.Float(c) for c in coeffs]
