@@ -194,16 +194,23 @@ class SceneComparison:
         settings = dict(self.render_settings, sampler=sampler)
         folder = os.path.join(self.folder, sampler)
         results: dict[str, dict] = {}
-        renderers = {m.name: MethodRenderer(self.path, m, settings) for m in methods}
+        renderers: dict[str, MethodRenderer] = {}
 
-        # Equal ray budget: K passes each.
+        # Equal ray budget: K passes each. A method that fails to load or render is dropped
+        # with a note, so one broken plugin does not cost the whole comparison.
         equal_spp: dict[str, PassSet] = {}
-        for m in methods:
+        for m in list(methods):
             self.bar.set_description(f"{self.name}/{sampler}/{m.name} equal spp")
-            r = renderers[m.name]
-            r.warm_up(equal_ray_spp(s.spp, m))
-            self.bar.update(1)
-            passes = r.passes(equal_ray_spp(s.spp, m), s.passes, s.seed)
+            try:
+                r = renderers[m.name] = MethodRenderer(self.path, m, settings)
+                r.warm_up(equal_ray_spp(s.spp, m))
+                self.bar.update(1)
+                passes = r.passes(equal_ray_spp(s.spp, m), s.passes, s.seed)
+            except Exception as err:
+                self.notes.append(f"'{m.name}' failed with the {sampler} sampler and was left out: "
+                                  f"{type(err).__name__}: {str(err).strip().splitlines()[0] if str(err).strip() else ''}")
+                methods = [x for x in methods if x is not m]
+                continue
             self.bar.update(s.passes)
             equal_spp[m.name] = passes
             entry = {"label": m.label, "family": m.family, "rays_per_sample": m.rays_per_sample,

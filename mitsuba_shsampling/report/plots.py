@@ -29,7 +29,8 @@ def convergence_figure(curves: dict[str, list[dict]], title: str) -> bytes:
     for ax in (ax_spp, ax_time):
         ax.set_ylabel("MSE")
         ax.grid(True, which="both", alpha=0.3)
-    ax_spp.legend(fontsize=7)
+    if ax_spp.get_legend_handles_labels()[0]:
+        ax_spp.legend(fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
     buffer = io.BytesIO()

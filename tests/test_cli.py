@@ -1,0 +1,200 @@
+"""The ``compare`` command end to end on tiny scenes, its error handling, and the report pieces."""
+
+import json
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import mitsuba_shsampling  # noqa: F401  (LLVM backend check)
+import mitsuba as mi
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling import cli, scenes  # noqa: E402
+from mitsuba_shsampling.report import figures, metrics  # noqa: E402
+from mitsuba_shsampling.report.methods import METHODS, available_methods, plugin_status  # noqa: E402
+from mitsuba_shsampling.report.rendering import admissible_spp  # noqa: E402
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+METRIC_KEYS = ("spp", "mse", "rel_mse", "time_s", "efficiency", "bias_ok")
+
+
+@pytest.fixture(scope="module")
+def tiny_report(tmp_path_factory):
+    out = tmp_path_factory.mktemp("report")
+    code = cli.main(["compare", scenes.builtin_scenes()["sphere_ggx010"], "--out", str(out), "--res", "24", "--spp", "2", "--passes", "2", "--ref-spp", "16",
+                     "--sampler", "independent", "--convergence-max-spp", "2",
+                     "--cache-dir", str(out / "cache"), "--no-progress"])
+    assert code == 0
+    with open(out / "report.json") as f:
+        return out, json.load(f)
+
+
+def expected_direct_methods():
+    runnable, _ = available_methods(None, multi_bounce=False)
+    return [m.name for m in runnable]
+
+
+def test_report_json_has_every_available_method_with_finite_metrics(tiny_report):
+    _, report = tiny_report
+    ggx = report["scenes"][0]
+    assert ggx["scene"] == "sphere_ggx010" and ggx["has_envmap"]
+    methods = ggx["runs"][0]["methods"]
+    assert list(methods) == expected_direct_methods()
+    assert {"direct", "direct_misc", "env_only", "bsdf_only"} <= set(methods)
+    for entry in methods.values():
+        for kind in ("equal_spp", "equal_time"):
+            for key in METRIC_KEYS:
+                assert key in entry[kind]
+            for key in ("mse", "rel_mse", "time_s", "efficiency"):
+                assert np.isfinite(entry[kind][key]) and entry[kind][key] > 0
+            assert len(entry[kind]["files"]) == 2
+
+
+def test_report_states_machine_variant_versions_and_settings(tiny_report):
+    _, report = tiny_report
+    assert report["variant"] == "llvm_ad_rgb"
+    assert report["versions"]["mitsuba"] == mi.__version__
+    assert report["machine"]["cpu_count"] >= 1
+    assert report["settings"]["spp"] == 2 and report["settings"]["passes"] == 2
+
+
+def test_equal_spp_renders_give_every_direct_method_the_same_ray_budget(tiny_report):
+    _, report = tiny_report
+    methods = report["scenes"][0]["runs"][0]["methods"]
+    budgets = {e["equal_spp"]["spp"] * e["rays_per_sample"] for e in methods.values()}
+    assert budgets == {4}
+
+
+def test_unskipped_sh_methods_are_reported_or_their_absence_is_noted(tiny_report):
+    _, report = tiny_report
+    ggx = report["scenes"][0]
+    methods = ggx["runs"][0]["methods"]
+    for name in ("sh_direct", "sh_product_only"):
+        assert name in methods or any(f"'{name}'" in note for note in ggx["notes"])
+
+
+def test_scene_without_envmap_renders_with_a_note(tmp_path):
+    code = cli.main(["compare", scenes.builtin_scenes()["area_light"], "--out", str(tmp_path),
+                     "--res", "16", "--spp", "2", "--passes", "2", "--ref-spp", "8",
+                     "--sampler", "independent", "--methods", "direct,direct_misc",
+                     "--convergence-max-spp", "0", "--cache-dir", str(tmp_path / "cache"), "--no-progress"])
+    assert code == 0
+    area = json.loads((tmp_path / "report.json").read_text())["scenes"][0]
+    assert area["scene"] == "area_light" and not area["has_envmap"]
+    assert any("no environment map" in note for note in area["notes"])
+    assert any("direct_misc" in note for note in area["notes"])  # no $mis_compensation to set
+    assert list(area["runs"][0]["methods"]) == ["direct"]
+    assert (tmp_path / "index.html").is_file()
+
+
+def test_html_is_self_contained_and_every_linked_file_exists(tiny_report):
+    out, _ = tiny_report
+    html = (out / "index.html").read_text()
+    assert "data:image/png;base64," in html
+    assert "llvm_ad_rgb" in html and mi.__version__ in html
+    links = re.findall(r'(?:href|src)="([^"]+)"', html)
+    files = [link for link in links if not link.startswith("data:")]
+    assert any(f.endswith(".exr") for f in files)
+    for link in files:
+        assert (out / link).is_file(), link
+    assert (out / "metrics.csv").is_file()
+
+
+def test_reference_is_cached_and_reused(tiny_report, tmp_path):
+    out, report = tiny_report
+    ref = report["scenes"][0]["references"]["direct"]
+    assert not ref["cached"] and os.path.isfile(ref["cache_file"])
+    code = cli.main(["compare", scenes.builtin_scenes()["sphere_ggx010"], "--out", str(tmp_path),
+                     "--res", "24", "--spp", "2", "--passes", "2", "--ref-spp", "16",
+                     "--sampler", "independent", "--methods", "direct", "--convergence-max-spp", "0",
+                     "--cache-dir", str(out / "cache"), "--no-progress"])
+    assert code == 0
+    again = json.loads((tmp_path / "report.json").read_text())["scenes"][0]["references"]["direct"]
+    assert again["cached"] and again["cache_file"] == ref["cache_file"]
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "mitsuba_shsampling", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_missing_scene_file_exits_with_code_2_and_a_one_line_message():
+    proc = run_cli("compare", "/nonexistent/scene.xml")
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "scene file not found" in lines[0]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--variant", "scalar_rgb"], "not supported"),
+    (["--variant", "llvm_no_such_variant"], "not available"),
+    (["--methods", "direct,no_such_method"], "unknown method"),
+    (["--sampler", "halton9"], "unknown sampler"),
+    (["--passes", "1"], "at least 2"),
+])
+def test_bad_options_exit_with_code_2_and_a_one_line_message(args, message, capsys):
+    assert cli.main(["compare", *args, "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+def test_envmap_swap_on_a_scene_without_envmap_parameter_is_a_usage_error(capsys):
+    code = cli.main(["compare", scenes.builtin_scenes()["area_light"], "--envmap", scenes.STUDIO_MAP])
+    assert code == 2
+    assert "declares no $envmap" in capsys.readouterr().err
+
+
+def test_plugin_status_accepts_mitsuba_integrators_and_explains_unknown_ones():
+    assert plugin_status("direct") is None
+    reason = plugin_status("no_such_integrator_xyz")
+    assert reason is not None and "no_such_integrator_xyz" in reason
+
+
+def test_every_method_counts_two_rays_per_sample_and_sh_methods_need_their_plugin():
+    for method in METHODS:
+        assert method.rays_per_sample == 2
+        assert (method.plugin is not None) == method.product_sampling
+
+
+def test_admissible_spp_matches_what_each_sampler_renders():
+    assert admissible_spp("independent", 23) == 23
+    assert admissible_spp("stratified", 16) == 16
+    assert admissible_spp("ldsampler", 16) == 16
+    assert admissible_spp("ldsampler", 40) in (16, 64)
+    sampler = mi.load_dict({"type": "stratified"})
+    sampler.set_sample_count(admissible_spp("stratified", 20))
+    assert sampler.sample_count() == admissible_spp("stratified", 20)
+
+
+def test_relative_mse_is_the_regularised_squared_error():
+    ref = np.full((2, 2, 3), 0.1)
+    image = ref + 0.1
+    assert metrics.rel_mse(image, ref) == pytest.approx(0.01 / (0.01 + 0.01))
+    assert metrics.mse(image, ref) == pytest.approx(0.01)
+    assert metrics.efficiency(0.01, 2.0) == pytest.approx(50.0)
+
+
+def test_bias_check_passes_unbiased_passes_and_flags_an_offset():
+    rng = np.random.default_rng(0)
+    ref = np.full((32, 32, 3), 1.0)
+    passes = ref[None] + rng.normal(0, 0.1, size=(4, 32, 32, 3))
+    assert metrics.bias_check(passes, ref, np.zeros_like(ref))["bias_ok"]
+    biased = metrics.bias_check(passes + 0.05, ref, np.zeros_like(ref))
+    assert not biased["bias_ok"] and biased["mean_z"] > 4
+
+
+def test_student_t_tail_matches_the_cauchy_closed_form():
+    assert metrics.student_t_tail(4.0, 1) == pytest.approx(1 - 2 / np.pi * np.arctan(4.0), rel=1e-6)
+
+
+def test_warped_points_figure_draws_sampler_output_and_rejects_bad_shapes():
+    density = np.outer(np.linspace(0, 1, 16), np.ones(32))
+    png = figures.warped_points_figure(density, lambda u: u * [2 * np.pi, 2] - [0, 1], n_points=64)
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="shape"):
+        figures.warped_points_figure(density, lambda u: u[:, :1], n_points=64)
