@@ -97,7 +97,7 @@ def _check_rotation_lanes(r) -> None:
     bad = ~(worst <= ROTATION_TOLERANCE)  # NaN counts as bad
     if dr.any(bad, axis=None):
         raise ValueError(
-            f"{dr.count(bad, axis=None)} lane(s) of the matrix are not rotations "
+            f"{dr.count(bad, axis=None)[0]} lane(s) of the matrix are not rotations "
             "(orthonormal, det +1)")
 
 
