@@ -1,0 +1,110 @@
+"""Per-scene state of the SH product strategy, shared by the integrators.
+
+Built once per scene, on the host, before the first render pass (never while a
+pass is being traced): the environment pyramid, the BSDF lobe table and the
+product warp. A scene without an environment map, or whose BSDFs are all
+delta/unsupported, builds nothing and the integrators behave like their
+Mitsuba counterparts.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import drjit as dr
+import mitsuba as mi
+
+from ..envmap.pyramid import EnvPyramid
+from ..lobes import SceneLobes
+from ..warp.product import ProductWarp
+
+
+def check_variant() -> None:
+    """Raise a clear error for variants the product strategy cannot run on."""
+    variant = mi.variant()
+    if variant is None:
+        raise RuntimeError("mitsuba_shsampling: set a Mitsuba variant first, e.g. mi.set_variant('llvm_ad_rgb')")
+    if not (variant.startswith("llvm_") or variant.startswith("cuda_")):
+        raise RuntimeError(
+            f"mitsuba_shsampling: variant '{variant}' is not supported: the SH warps are Dr.Jit "
+            "kernels; use a JIT variant such as 'llvm_ad_rgb'")
+    if "polarized" in variant or "spectral" in variant:
+        raise RuntimeError(
+            f"mitsuba_shsampling: variant '{variant}' is not supported (the environment pyramid "
+            "is built from RGB/mono radiance); use e.g. 'llvm_ad_rgb'")
+
+
+class ProductEnvironment:
+    """Environment product sampling for one scene.
+
+    Attributes: ``emitter`` (the envmap or None), ``active`` (bool: product
+    sampling runs for this scene), ``reason`` (why not, when inactive),
+    ``pyramid``, ``lobes``, ``warp``.
+    """
+
+    def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None):
+        self.scene = scene
+        self.emitter = scene.environment()
+        self.pyramid = self.lobes = self.warp = None
+        self.active = False
+        if self.emitter is None:
+            self.reason = "the scene has no environment emitter"
+            return
+        if self.emitter.class_name() != "EnvironmentMapEmitter":
+            self.reason = (f"the environment emitter is '{self.emitter.class_name()}', not an 'envmap'; "
+                           "it keeps Mitsuba's own sampling")
+            warnings.warn(f"mitsuba_shsampling: {self.reason}")
+            return
+        self.lobes = SceneLobes(scene, max_bands=max_bands)
+        if not self.lobes.has_product_lobes:
+            self.reason = "no BSDF in the scene has a lobe worth product sampling (all delta or unsupported)"
+            return
+        self.pyramid = EnvPyramid(self.emitter)
+        if self.pyramid.is_black:
+            self.reason = "the environment map is black"
+            return
+        self.warp = ProductWarp(self.pyramid, sh_depth=sh_depth)
+        self.active = True
+        self.reason = ""
+
+    def lobe(self, si: mi.SurfaceInteraction3f, active: mi.Bool):
+        """(coeffs, use_product) of the lobe proxy at ``si`` in the grid frame."""
+        return self.lobes.coefficients(si, self.pyramid.grid_from_world, active)
+
+    def sample(self, coeffs, u: mi.Point2f, active: mi.Bool):
+        """World direction and solid-angle pdf of a product sample."""
+        d, pdf = self.warp.sample(coeffs, u)
+        return d, dr.select(active, pdf, 0.0)
+
+    def pdf(self, coeffs, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
+        return dr.select(active, self.warp.pdf(coeffs, d), 0.0)
+
+    def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
+        """Per-lane test: is ``emitter`` the environment map."""
+        return dr.reinterpret_array(mi.UInt32, emitter) == dr.reinterpret_array(
+            mi.UInt32, mi.EmitterPtr(self.emitter))
+
+
+def mis_weight(pdf_a, pdf_b):
+    """Power heuristic (beta = 2), robust to infinite and zero pdfs."""
+    a2, b2 = dr.square(pdf_a), dr.square(pdf_b)
+    w = a2 / (a2 + b2)
+    return dr.select(dr.isfinite(w), w, 0.0)
+
+
+class SceneCache:
+    """Builds :class:`ProductEnvironment` once per scene object."""
+
+    def __init__(self, max_bands: int, sh_depth: int | None):
+        self.max_bands, self.sh_depth = max_bands, sh_depth
+        self._scene, self._env = None, None
+
+    def get(self, scene: mi.Scene) -> ProductEnvironment:
+        if self._scene is not scene:
+            self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth)
+            self._scene = scene
+        return self._env
+
+    def invalidate(self) -> None:
+        """Forget the cached state (call after editing the environment map)."""
+        self._scene = self._env = None

@@ -1,0 +1,180 @@
+"""``sh_path``: a path tracer with SH product sampling for environment NEE."""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .environment import SceneCache, check_variant, mis_weight
+from .sh_direct import environment_ray_target, read_sh_properties
+
+
+class SHPathIntegrator(mi.SamplingIntegrator):
+    r"""
+    .. _integrator-sh_path:
+
+    SH product path tracer (:monosp:`sh_path`)
+    ------------------------------------------
+
+    .. pluginparameters::
+
+     * - max_depth
+       - |int|
+       - Longest path (-1: unbounded). 2 gives direct illumination. (Default: -1)
+     * - rr_depth
+       - |int|
+       - Depth at which Russian roulette starts. (Default: 5)
+     * - hide_emitters
+       - |bool|
+       - Hide directly visible emitters. (Default: false)
+     * - max_bands
+       - |int|
+       - Cap on the SH band count of the lobe proxies (3..32). (Default: 20)
+     * - sh_depth
+       - |int|
+       - Levels of the product hierarchy with analytic SH integrals (-1: automatic). (Default: -1)
+
+    Mitsuba's :monosp:`path` with one change: at every vertex whose BSDF has a
+    smooth lobe, next-event estimation towards the environment map draws its
+    direction from the product of the BSDF lobe proxy (spherical harmonics,
+    rotated per vertex) and the environment's luminance. It is combined with
+    BSDF sampling by the power heuristic; the product pdf of each BSDF-sampled
+    direction is evaluated at the vertex that sampled it and carried to the
+    next one (one float of loop state). Other emitters keep Mitsuba's emitter
+    sampling; without an ``envmap`` nothing is built and it runs like
+    :monosp:`path`.
+
+    .. tabs::
+        .. code-tab:: xml
+
+            <integrator type="sh_path">
+                <integer name="max_depth" value="8"/>
+            </integrator>
+
+        .. code-tab:: python
+
+            'type': 'sh_path', 'max_depth': 8
+    """
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        check_variant()
+        self.max_depth = props.get("max_depth", -1)
+        self.rr_depth = props.get("rr_depth", 5)
+        self.hide_emitters = props.get("hide_emitters", False)
+        if self.max_depth < -1 or self.max_depth == 0:
+            raise ValueError("sh_path: 'max_depth' must be -1 (unbounded) or >= 1")
+        if self.rr_depth < 1:
+            raise ValueError("sh_path: 'rr_depth' must be >= 1")
+        self.scenes = SceneCache(*read_sh_properties(props, "sh_path"))
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        self.scenes.get(scene)  # build host-side state before tracing the pass
+        return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    def _next_event(self, env, scene, sampler, si, bsdf, ctx, active):
+        """Product NEE for the environment plus Mitsuba NEE for other emitters.
+
+        Returns (radiance estimate before throughput, coeffs, use_product)."""
+        L = mi.Spectrum(0.0)
+        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        coeffs, use_product = None, mi.Bool(False)
+        if env.active:
+            coeffs, use_product = env.lobe(si, smooth)
+            use_product &= smooth
+            d, pdf_p = env.sample(coeffs, sampler.next_2d(smooth), use_product)
+            act = use_product & (pdf_p > 0)
+            bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
+            act &= ~scene.ray_test(si.spawn_ray(d), act)
+            Le = env.emitter.eval(environment_ray_target(d), act)
+            L += dr.select(act, bsdf_val * Le * (mis_weight(pdf_p, bsdf_pdf) / pdf_p), 0.0)
+
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
+        act = smooth & (ds.pdf != 0)
+        if env.active:
+            act &= ~(use_product & env.is_environment(ds.emitter))
+        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
+        weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+        L += dr.select(act, bsdf_val * em_weight * weight, 0.0)
+        return L, coeffs, use_product
+
+    @dr.syntax
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        env = self.scenes.get(scene)
+        max_depth = self.max_depth if self.max_depth >= 0 else 0xFFFFFFFF
+        ctx = mi.BSDFContext()
+
+        # --------------------- Configure loop state ----------------------
+        ray = mi.Ray3f(ray)
+        active = mi.Bool(active)
+        L = mi.Spectrum(0.0)
+        beta = mi.Spectrum(1.0)
+        eta = mi.Float(1.0)
+        depth = mi.UInt32(0)
+        valid_ray = mi.Bool(not self.hide_emitters and scene.environment() is not None)
+        prev_si = dr.zeros(mi.Interaction3f)
+        prev_bsdf_pdf = mi.Float(1.0)
+        prev_bsdf_delta = mi.Bool(True)
+        prev_product = mi.Bool(False)   # previous vertex drew environment NEE by product sampling
+        prev_product_pdf = mi.Float(0.0)  # ... and this is the product pdf of the current ray
+
+        while active:
+            si = scene.ray_intersect(ray, active)
+
+            # ---------------- Emitter hit by the BSDF-sampled ray ----------------
+            emitter = si.emitter(scene, active)
+            ds = mi.DirectionSample3f(scene, si, prev_si)
+            em_pdf = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta)
+            em_pdf = self._environment_pdf(env, emitter, prev_product, prev_product_pdf, em_pdf)
+            em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
+            visible = active & ((depth > 0) | (not self.hide_emitters))
+            L += dr.select(visible, beta * mis_weight(prev_bsdf_pdf, em_pdf) * emitter.eval(si, visible), 0.0)
+
+            active_next = active & si.is_valid() & (depth + 1 < max_depth)
+            valid_ray |= active & si.is_valid()
+            bsdf = si.bsdf(ray)
+
+            # -------------------------- Next-event estimation --------------------------
+            L_ne, coeffs, use_product = self._next_event(env, scene, sampler, si, bsdf, ctx, active_next)
+            L += beta * L_ne
+
+            # ------------------------------ BSDF sampling ------------------------------
+            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_next),
+                                          sampler.next_2d(active_next), active_next)
+            d = si.to_world(bs.wo)
+            delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            prev_product_pdf = self._product_pdf(env, coeffs, d, use_product & ~delta & active_next)
+            prev_product = use_product
+            prev_si = mi.Interaction3f(si)
+            prev_bsdf_pdf = bs.pdf
+            prev_bsdf_delta = delta
+            ray = si.spawn_ray(d)
+            beta *= bsdf_weight
+            eta *= bs.eta
+
+            # ---------------------------- Russian roulette ----------------------------
+            beta_max = dr.max(beta * dr.square(eta))
+            rr_active = depth >= self.rr_depth
+            rr_prob = dr.minimum(beta_max, 0.95)
+            rr_continue = sampler.next_1d(active_next) < rr_prob
+            beta = dr.select(rr_active, beta * dr.rcp(rr_prob), beta)
+            active = active_next & (~rr_active | rr_continue) & (beta_max != 0) & (bs.pdf > 0)
+            depth += 1
+
+        return L, valid_ray, []
+
+    @staticmethod
+    def _environment_pdf(env, emitter, prev_product, prev_product_pdf, em_pdf):
+        """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``."""
+        if not env.active:
+            return em_pdf
+        return dr.select(prev_product & env.is_environment(emitter), prev_product_pdf, em_pdf)
+
+    @staticmethod
+    def _product_pdf(env, coeffs, d, active):
+        if not env.active:
+            return mi.Float(0.0)
+        return env.pdf(coeffs, d, active)
+
+    def to_string(self):
+        return f"SHPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
