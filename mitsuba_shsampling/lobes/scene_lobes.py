@@ -1,0 +1,268 @@
+"""Per-shading-point SH lobes of every BSDF in a scene (:class:`SceneLobes`).
+
+Host side, once per scene: each shape's BSDF is classified (product lobe, delta,
+unsupported), its two-lobe proxy (``lobes.fit``) is fitted on a few view
+elevations, and the parameters go into one flat table. Per lane, inside a traced
+integrator ``sample()``: the BSDF's registry id selects its table row, the view
+elevation interpolates the parameters, and two zonal lobes are turned to the
+grid frame. One kernel, no host round trip.
+
+The proxy, per lane, in the grid frame (n = shading normal on the viewer's side,
+r = mirror direction of ``si.wi`` about the shading normal):
+
+    q(w) = w_d * max(cos(n, w), 0) / pi  +  w_g * (s+1)/(2 pi) * max(cos(r, w), 0)^s
+
+band-limited: the diffuse part keeps 3 bands (l <= 2, 99 % of the clamped
+cosine's energy), the Phong part ``n_bands``. The proxy is *not* zeroed below
+the surface's horizon (a Phong lobe about a grazing r spills below it, and the
+band limit rings): the product sampler clamps negative values, and MIS with BSDF
+sampling (whose pdf is exactly zero there) keeps the estimator unbiased, so the
+wasted samples only cost variance.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..sh.zonal import clamped_cosine_attenuation, phong_attenuation, zonal_to_sh
+from .fit import fit_two_lobe, mirror_quadrature, tabulate_lobe, uv_positions, varies_over_surface
+
+BAND_ATTENUATION_TOL = 0.1
+"""A lobe "needs" n bands when every attenuation |lambda_l|, l >= n, is below this
+(truncation then rings by a few % of the peak; Phong s = 20 needs 10 bands)."""
+
+DIFFUSE_BANDS = 3
+"""Bands kept for the diffuse (clamped cosine) part, and for diffuse-only scenes."""
+
+MIN_GLOSSY_FRACTION = 0.05
+"""A fitted Phong lobe carrying less than this fraction of the energy does not
+raise the scene's band count (it is a minor correction to a diffuse lobe)."""
+
+MIN_VIEW_COSINE = 0.02
+"""Grazing limit of the fitted view elevations; lanes below reuse this node."""
+
+
+def bands_for_exponent(s: float, tol: float = BAND_ATTENUATION_TOL, limit: int = 64) -> int:
+    """Bands a normalised Phong lobe of exponent ``s`` needs: the smallest n with
+    |lambda_l(s)| <= tol for all n <= l < ``limit``."""
+    lam = phong_attenuation(float(s), limit)
+    n = limit
+    while n > 1 and abs(lam[n - 1]) <= tol:
+        n -= 1
+    return n
+
+
+def max_exponent_for_bands(n_bands: int, tol: float = BAND_ATTENUATION_TOL) -> float:
+    """Largest Phong exponent that ``n_bands`` bands represent (inverse of
+    :func:`bands_for_exponent`, by bisection in log s)."""
+    lo, hi = 0.0, 1e6
+    if bands_for_exponent(hi, tol) <= n_bands:
+        return hi
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if bands_for_exponent(mid, tol) <= n_bands:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def registry_id(bsdf: mi.BSDF) -> int:
+    """Id under which Dr.Jit's registry knows ``bsdf``: the per-lane value of
+    ``dr.reinterpret_array(mi.UInt32, si.bsdf())`` on surfaces that use it."""
+    return int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
+
+
+def has_flag(flags: int, flag: mi.BSDFFlags) -> bool:
+    return (int(flags) & int(flag)) != 0
+
+
+def lobe_support(bsdf: mi.BSDF) -> str:
+    """How product sampling treats ``bsdf``, decided from its flags.
+
+    - ``"delta"``: only Dirac (or null) components, nothing to sample from an SH lobe;
+    - ``"unsupported"``: anisotropic, or with a non-Dirac transmission component
+      (the proxy is an isotropic reflection model);
+    - ``"product"``: everything else; the proxy is fitted to its ``eval``.
+    """
+    flags = int(bsdf.flags())
+    smooth = int(mi.BSDFFlags.Diffuse) | int(mi.BSDFFlags.Glossy)
+    if not flags & smooth:
+        return "delta"
+    if has_flag(flags, mi.BSDFFlags.Anisotropic):
+        return "unsupported"
+    if has_flag(flags, mi.BSDFFlags.DiffuseTransmission) or has_flag(flags, mi.BSDFFlags.GlossyTransmission):
+        return "unsupported"
+    return "product"
+
+
+class SceneLobes:
+    r"""SH proxies of the cosine-weighted BSDF lobes of every shape in a scene.
+
+    Parameters:
+
+    - ``scene`` (mi.Scene): the BSDFs of ``scene.shapes()`` are fitted once, here.
+    - ``max_bands`` (int, default 20): cap on the scene's band count.
+    - ``view_nodes`` (int, default 16): view elevations fitted per BSDF and side,
+      uniform in cos theta on [0.02, 1]; parameters are interpolated linearly in
+      between (the exponent in log space).
+    - ``uv_samples`` (int, default 16): textured BSDFs are represented by their
+      mean lobe over this many uv positions (Halton points); the representative
+      roughness is therefore the one of the uv-averaged lobe, not of any texel.
+
+    Attributes: ``n_bands`` (int, 0 when no BSDF needs product sampling),
+    ``has_product_lobes`` (bool), ``fits`` (dict: BSDF id string -> fitted
+    parameters, for reports), ``max_exponent`` (float: per-lane Phong exponents
+    are clamped to what ``n_bands`` represents, so a near-specular lobe becomes a
+    wider, ringing-free one rather than a ringing one).
+    """
+
+    def __init__(self, scene: mi.Scene, max_bands: int = 20, view_nodes: int = 16,
+                 uv_samples: int = 16):
+        if isinstance(max_bands, bool) or not isinstance(max_bands, int) or max_bands < DIFFUSE_BANDS:
+            raise ValueError(f"max_bands must be an int >= {DIFFUSE_BANDS}, got {max_bands!r}")
+        if view_nodes < 2:
+            raise ValueError(f"view_nodes must be >= 2, got {view_nodes}")
+        self.max_bands = max_bands
+        self.view_nodes = view_nodes
+        self.view_cosines = np.linspace(MIN_VIEW_COSINE, 1.0, view_nodes)
+        self.fits: dict[str, np.ndarray] = {}
+
+        uvs = uv_positions(uv_samples)
+        # Row 0 stays all-zero: lanes of delta, unsupported or missing BSDFs read it.
+        rows = [np.zeros((2, view_nodes, 3))]
+        row_of_id: dict[int, int] = {}
+        needed_bands = 0
+        for shape in scene.shapes():
+            bsdf = shape.bsdf()
+            if bsdf is None:
+                continue
+            key = registry_id(bsdf)
+            if key in row_of_id:
+                continue
+            support = lobe_support(bsdf)
+            if support == "unsupported":
+                warnings.warn(
+                    f"SceneLobes: BSDF '{bsdf.id()}' ({type(bsdf).__name__}, flags "
+                    f"{int(bsdf.flags()):#x}) is anisotropic or transmissive; its surfaces "
+                    "use Mitsuba's own environment sampling instead of product sampling.",
+                    stacklevel=2)
+            if support != "product":
+                row_of_id[key] = 0
+                continue
+            params = self._fit_bsdf(bsdf, uvs)
+            self.fits[bsdf.id()] = params
+            row_of_id[key] = len(rows)
+            rows.append(params)
+            needed_bands = max(needed_bands, self._bands_needed(params))
+
+        self.has_product_lobes = len(rows) > 1
+        self.n_bands = min(needed_bands, max_bands) if self.has_product_lobes else 0
+        self.max_exponent = max_exponent_for_bands(self.n_bands) if self.n_bands else 0.0
+
+        table = np.stack(rows)
+        # The exponent is stored as log(s) (interpolated in log space); unused
+        # entries (zero energy) get log 1 = 0.
+        table[..., 2] = np.log(np.maximum(table[..., 2], 1e-6))
+        self._table = mi.Float(table.astype(np.float32).ravel())
+        id_table = np.zeros(max(row_of_id, default=0) + 1, dtype=np.uint32)
+        for key, row in row_of_id.items():
+            id_table[key] = row
+        self._row_of_id = mi.UInt32(id_table)
+        self._row_of_id_size = len(id_table)
+
+    # -- Host side: fitting ---------------------------------------------------
+
+    def _fit_bsdf(self, bsdf: mi.BSDF, uvs: np.ndarray) -> np.ndarray:
+        """Parameters (side, view node, [w_d, w_g, s]) of one BSDF; side 1 is the
+        back side (view below the surface), all-zero for one-sided BSDFs."""
+        if not varies_over_surface(bsdf, uvs):
+            uvs = uvs[:1]
+        params = np.zeros((2, self.view_nodes, 3))
+        params[..., 2] = 1.0
+        quadratures = [mirror_quadrature(c) for c in self.view_cosines]
+        lights = np.stack([q.directions for q in quadratures])
+        sides = [False, True] if has_flag(bsdf.flags(), mi.BSDFFlags.BackSide) else [False]
+        for side, back in enumerate(sides):
+            g = tabulate_lobe(bsdf, self.view_cosines, lights, uvs, back_side=back).mean(axis=2)
+            for k, quadrature in enumerate(quadratures):
+                fit = fit_two_lobe(g[k], quadrature)
+                params[side, k] = (fit.diffuse_weight, fit.glossy_weight, fit.exponent)
+        return params
+
+    def _bands_needed(self, params: np.ndarray) -> int:
+        """Bands the sharpest significant glossy lobe of one BSDF's table needs."""
+        energy = params[..., 0] + params[..., 1]
+        glossy = params[..., 1] > MIN_GLOSSY_FRACTION * np.maximum(energy, 1e-30)
+        bands = DIFFUSE_BANDS
+        for s in params[..., 2][glossy & (energy > 0)]:
+            bands = max(bands, bands_for_exponent(s))
+        return bands
+
+    # -- Device side: per-lane coefficients -----------------------------------
+
+    def lookup(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True):
+        """Interpolated proxy parameters per lane: (w_d, w_g, s, valid).
+
+        ``s`` is already clamped to ``max_exponent``; ``valid`` is False for
+        lanes without a fitted lobe (delta, unsupported, no hit, back side of a
+        one-sided BSDF, zero energy).
+        """
+        active = mi.Bool(active) & si.is_valid()
+        bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
+        active &= bsdf_id < self._row_of_id_size
+        row = dr.gather(mi.UInt32, self._row_of_id, bsdf_id, active)
+
+        cos_view = si.wi.z
+        side = dr.select(cos_view < 0, mi.UInt32(1), mi.UInt32(0))
+        k_last = self.view_nodes - 1
+        position = dr.clip((dr.abs(cos_view) - MIN_VIEW_COSINE) / (1.0 - MIN_VIEW_COSINE), 0.0, 1.0) * k_last
+        k0 = mi.UInt32(dr.minimum(mi.Int32(position), k_last - 1))
+        frac = position - mi.Float(k0)
+        base = (row * 2 + side) * self.view_nodes + k0
+        p0 = dr.gather(mi.Vector3f, self._table, base, active)
+        p1 = dr.gather(mi.Vector3f, self._table, base + 1, active)
+
+        w_d = dr.lerp(p0.x, p1.x, frac)
+        w_g = dr.lerp(p0.y, p1.y, frac)
+        s = dr.minimum(dr.exp(dr.lerp(p0.z, p1.z, frac)), self.max_exponent)
+        valid = active & (row > 0) & (w_d + w_g > 0) & dr.isfinite(cos_view) & (cos_view != 0)
+        return w_d, w_g, s, valid
+
+    def coefficients(self, si: mi.SurfaceInteraction3f,
+                     grid_from_world: Callable[[mi.Vector3f], mi.Vector3f],
+                     active: mi.Bool = True) -> tuple[list, mi.Bool]:
+        """SH coefficients of the lobe proxy per lane, in the grid frame.
+
+        Parameter ``si``: the shading point; ``si.wi`` (local, towards the viewer)
+        and ``si.sh_frame`` define the lobe, ``si.bsdf()`` its table row.
+
+        Parameter ``grid_from_world``: maps a world direction to the
+        environment's grid frame (a rotation; see docs/ARCHITECTURE.md).
+
+        Returns ``(coeffs, use_product)``: ``coeffs`` is a list of ``n_bands**2``
+        mi.Float (index l*(l+1)+m), the proxy's integral over the sphere is the
+        lobe's energy (directional albedo, luminance) for this view direction;
+        ``use_product`` is False for delta, unsupported and invalid lanes, whose
+        coefficients are zero. Traceable: no host round trip, one kernel.
+        """
+        if not self.has_product_lobes:
+            return [], mi.Bool(False)
+        w_d, w_g, s, use_product = self.lookup(si, active)
+
+        wi = si.wi
+        side = dr.select(wi.z < 0, -1.0, 1.0)
+        normal = grid_from_world(si.sh_frame.n * side)
+        mirror = grid_from_world(si.to_world(mi.Vector3f(-wi.x, -wi.y, wi.z)))
+
+        glossy = zonal_to_sh([w_g * lam for lam in phong_attenuation(s, self.n_bands)], mirror)
+        cosine = clamped_cosine_attenuation(DIFFUSE_BANDS)
+        diffuse = zonal_to_sh([w_d * (lam / cosine[0]) for lam in cosine], normal)
+        coeffs = [c + (diffuse[i] if i < len(diffuse) else 0.0) for i, c in enumerate(glossy)]
+        return [dr.select(use_product, c, 0.0) for c in coeffs], use_product
