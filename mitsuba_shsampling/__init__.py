@@ -11,6 +11,11 @@ prefer_good_libllvm()
 LLVM_VERSION = check_llvm_backend()
 
 from .sh.basis import sh_eval  # noqa: E402
+from .integrators import register, register_if_variant_set  # noqa: E402
+
+# Make <integrator type="sh_direct"/> work right after `import mitsuba_shsampling`
+# when the user already chose a supported variant.
+register_if_variant_set()
 
 __version__ = "0.1.0"
-__all__ = ["BackendError", "LLVM_VERSION", "sh_eval"]
+__all__ = ["BackendError", "LLVM_VERSION", "register", "sh_eval"]

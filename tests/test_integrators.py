@@ -1,0 +1,205 @@
+"""Specification of the ``sh_direct`` and ``sh_path`` integrator plugins.
+
+Unbiasedness is tested statistically: K independent renders (different seeds)
+are averaged and compared with a high-spp Mitsuba ``path`` reference. The
+test fails when the image mean, or the mean over any 4x4-pixel block, differs
+from the reference by more than 5 standard errors (standard errors estimated
+from the spread of the K passes plus the reference's own noise).
+"""
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong
+from mitsuba_shsampling.integrators import register
+
+RES = 24
+PASSES = 8
+SPP = 16
+REF_SPP = 2048
+BANDS = 5  # small band count keeps the kernels quick to compile
+
+
+@pytest.fixture(scope="module", autouse=True)
+def registered():
+    register()
+
+
+def sun_environment(rotated: bool):
+    to_world = mi.ScalarTransform4f().rotate(list(np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])), 40.0) if rotated else None
+    image = sun_sky_latlong(64, 128, sun_radius_deg=3.0, sun_radiance=300.0)
+    return envmap_emitter(image, to_world=to_world)
+
+
+def sphere(center, bsdf):
+    return {"type": "sphere", "center": center, "radius": 0.4, "bsdf": bsdf}
+
+
+MATERIALS = {
+    "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.6, 0.5, 0.4]}},
+    "ggx": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.2},
+    "beckmann": {"type": "roughconductor", "distribution": "beckmann", "alpha": 0.3},
+    "roughplastic": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2},
+    "principled": {"type": "principled", "roughness": 0.4, "metallic": 0.5},
+    "twosided": {"type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 0.25}},
+    "blend": {"type": "blendbsdf", "weight": 0.5,
+              "bsdf_0": {"type": "diffuse"},
+              "bsdf_1": {"type": "roughconductor", "alpha": 0.15}},
+    "smooth": {"type": "conductor"},
+}
+
+
+def make_scene(environment=True, rotated=False, area_light=False, materials=MATERIALS):
+    scene = {
+        "type": "scene",
+        "sensor": {
+            "type": "perspective", "fov": 45,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, -4.2, 1.6], target=[0, 0, 0], up=[0, 0, 1]),
+            "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent"},
+        },
+        # An occluding ground plane under the spheres.
+        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -0.4]).scale(4),
+                  "bsdf": {"type": "diffuse"}},
+    }
+    for i, (name, bsdf) in enumerate(materials.items()):
+        x, y = (i % 4) * 0.9 - 1.35, (i // 4) * 0.9 - 0.45
+        scene[name] = sphere([x, y, 0.0], bsdf)
+    if environment:
+        scene["env"] = sun_environment(rotated)
+    if area_light:
+        scene["light"] = {"type": "rectangle",
+                          "to_world": mi.ScalarTransform4f().translate([1.5, -1.0, 2.5]).scale(0.5),
+                          "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 20.0}}}
+    return mi.load_dict(scene)
+
+
+def render_passes(scene, integrator, spp=SPP, passes=PASSES):
+    return np.stack([mi.render(scene, integrator=integrator, spp=spp, seed=1000 + k).numpy()
+                     for k in range(passes)])
+
+
+def assert_unbiased(scene, integrator, reference_integrator):
+    reference = render_passes(scene, reference_integrator, spp=REF_SPP // 4, passes=4)
+    images = render_passes(scene, integrator)
+    assert np.all(np.isfinite(images)), "render produced NaN/Inf"
+
+    def block_means(x):  # (K, H, W, C) -> (K, blocks)
+        k = x.shape[0]
+        b = x.reshape(k, RES // 4, 4, RES // 4, 4, -1).mean(axis=(2, 4, 5))
+        return np.concatenate([b.reshape(k, -1), x.mean(axis=(1, 2, 3))[:, None]], axis=1)
+
+    est, ref = block_means(images), block_means(reference)
+    se = np.sqrt(est.var(axis=0, ddof=1) / len(est) + ref.var(axis=0, ddof=1) / len(ref))
+    z = np.abs(est.mean(axis=0) - ref.mean(axis=0)) / np.maximum(se, 1e-6 * np.abs(ref.mean(axis=0)) + 1e-12)
+    assert z[-1] < 5, f"image mean is {z[-1]:.1f} standard errors from the reference"
+    assert z.max() < 5, f"a 4x4 block mean is {z.max():.1f} standard errors from the reference"
+
+
+def test_sh_direct_is_unbiased_for_every_supported_bsdf_with_an_occluding_plane():
+    scene = make_scene()
+    assert_unbiased(scene, mi.load_dict({"type": "sh_direct", "max_bands": BANDS}),
+                    mi.load_dict({"type": "path", "max_depth": 2}))
+
+
+def test_sh_direct_is_unbiased_under_a_rotated_environment_with_an_extra_area_light():
+    scene = make_scene(rotated=True, area_light=True)
+    assert_unbiased(scene, mi.load_dict({"type": "sh_direct", "max_bands": BANDS}),
+                    mi.load_dict({"type": "path", "max_depth": 2}))
+
+
+def test_sh_direct_with_several_samples_per_strategy_is_unbiased():
+    scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})
+    assert_unbiased(scene, mi.load_dict({"type": "sh_direct", "max_bands": BANDS,
+                                         "emitter_samples": 2, "bsdf_samples": 3}),
+                    mi.load_dict({"type": "path", "max_depth": 2}))
+
+
+def test_sh_path_is_unbiased_for_multiple_bounces():
+    scene = make_scene(rotated=True)
+    assert_unbiased(scene, mi.load_dict({"type": "sh_path", "max_depth": 4, "max_bands": BANDS}),
+                    mi.load_dict({"type": "path", "max_depth": 4}))
+
+
+def test_scene_without_environment_builds_nothing_and_matches_direct():
+    scene = make_scene(environment=False, area_light=True,
+                       materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})
+    integrator = mi.load_dict({"type": "sh_direct"})
+    image = mi.render(scene, integrator=integrator, spp=4, seed=3).numpy()
+    env = integrator.scenes.get(scene)
+    assert not env.active and env.pyramid is None and env.lobes is None
+    assert "no environment" in env.reason
+    baseline = mi.render(scene, integrator=mi.load_dict({"type": "direct"}), spp=4, seed=3).numpy()
+    # Same strategies, same sample streams: the renders agree to rounding.
+    np.testing.assert_allclose(image, baseline, rtol=1e-4, atol=1e-5)
+
+
+def test_delta_only_scene_skips_product_sampling():
+    scene = make_scene(materials={"smooth": MATERIALS["smooth"]} | {"glass": {"type": "dielectric"}})
+    # The diffuse ground plane still has a lobe, so use a scene of delta BSDFs only.
+    scene = mi.load_dict({"type": "scene", "env": sun_environment(False),
+                          "s": sphere([0, 0, 0], {"type": "conductor"}),
+                          "g": sphere([1, 0, 0], {"type": "dielectric"})})
+    integrator = mi.load_dict({"type": "sh_direct"})
+    env = integrator.scenes.get(scene)
+    assert not env.active and env.pyramid is None
+    assert "delta" in env.reason
+
+
+def kernels_per_pass(scene, integrator, seed):
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()  # drop anything recorded before this pass
+        mi.render(scene, integrator=integrator, spp=4, seed=seed)
+        # Count full-size kernels (one lane per pixel or more): a host round trip
+        # inside sample() would split the pass into more of them. Tiny
+        # bookkeeping kernels (size <= spp) depend on the sampler's history.
+        return sum(1 for k in dr.kernel_history() if k["size"] >= RES * RES)
+
+
+def test_kernel_count_per_render_pass_is_constant_and_equals_direct():
+    scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})
+    sh = mi.load_dict({"type": "sh_direct", "max_bands": BANDS})
+    direct = mi.load_dict({"type": "direct"})
+    for integrator in (sh, direct):
+        mi.render(scene, integrator=integrator, spp=4, seed=0)  # build host state, compile
+    counts = [kernels_per_pass(scene, sh, seed) for seed in (1, 2)]
+    baseline = kernels_per_pass(scene, direct, 1)
+    assert counts[0] == counts[1]
+    assert counts[0] == baseline, f"{counts[0]} full-size kernels per pass vs {baseline} for direct"
+
+
+def test_integrators_load_from_xml_strings():
+    xml = """<scene version="3.0.0">
+        <integrator type="sh_direct"><integer name="max_bands" value="6"/></integrator>
+    </scene>"""
+    scene = mi.load_string(xml)
+    assert "SHDirectIntegrator" in str(scene.integrator())
+    path = mi.load_string('<integrator version="3.0.0" type="sh_path"><integer name="max_depth" value="3"/></integrator>')
+    assert "max_depth=3" in str(path)
+
+
+@pytest.mark.parametrize("props, message", [
+    ({"type": "sh_direct", "max_bands": 2}, "max_bands"),
+    ({"type": "sh_direct", "max_bands": 40}, "max_bands"),
+    ({"type": "sh_direct", "sh_depth": 20}, "sh_depth"),
+    ({"type": "sh_direct", "emitter_samples": 0, "bsdf_samples": 0}, "not both 0"),
+    ({"type": "sh_path", "max_depth": 0}, "max_depth"),
+])
+def test_bad_parameters_raise_clear_errors(props, message):
+    with pytest.raises(Exception, match=message):
+        mi.load_dict(props)
+
+
+def test_unsupported_variants_are_refused_with_a_clear_error():
+    from mitsuba_shsampling.integrators.environment import check_variant
+    current = mi.variant()
+    try:
+        mi.set_variant("scalar_rgb")
+        with pytest.raises(RuntimeError, match="not supported"):
+            check_variant()
+    finally:
+        mi.set_variant(current)
