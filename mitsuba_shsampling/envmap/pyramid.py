@@ -178,9 +178,14 @@ class EnvPyramid:
     emitter: a Mitsuba ``envmap`` emitter (``TypeError`` otherwise).
     max_depth: cap on the finest level D (default :data:`DEFAULT_MAX_DEPTH`);
         D = min(ceil(log2(max(W, H))), max_depth), at least 1.
+    mis_compensation: subtract the map's mean radiance from every finest cell
+        (clamped at 0) before summing, as Mitsuba's ``envmap`` option of the
+        same name does for its own sampler. ``total`` is then the integral of
+        the compensated target; ``radiant_total`` is always the map's integral.
     """
 
-    def __init__(self, emitter: mi.Emitter, max_depth: int | None = None) -> None:
+    def __init__(self, emitter: mi.Emitter, max_depth: int | None = None,
+                 mis_compensation: bool = False) -> None:
         name = emitter.class_name() if hasattr(emitter, "class_name") else type(emitter).__name__
         if name != "EnvironmentMapEmitter":
             raise TypeError(f"EnvPyramid needs an 'envmap' emitter, got {name}")
@@ -192,12 +197,12 @@ class EnvPyramid:
         start = time.perf_counter()
         luminance = self._texel_luminance(data[:, 1:-1, :])
         self._build(luminance, float(dr.ravel(params["scale"])[0]),
-                    mi.AffineTransform4f(params["to_world"]), max_depth, start)
+                    mi.AffineTransform4f(params["to_world"]), max_depth, start, mis_compensation)
 
     @classmethod
     def from_latlong(cls, image: np.ndarray, scale: float = 1.0,
                      to_world: mi.ScalarAffineTransform4f | None = None,
-                     max_depth: int | None = None) -> "EnvPyramid":
+                     max_depth: int | None = None, mis_compensation: bool = False) -> "EnvPyramid":
         """Pyramid of a lat-long image in the ``envmap`` layout, without an emitter.
 
         ``image`` is (H, W) luminance or (H, W, 1|3) linear RGB, row 0 at the
@@ -213,7 +218,7 @@ class EnvPyramid:
         pyramid = cls.__new__(cls)
         to_world = mi.ScalarAffineTransform4f() if to_world is None else to_world
         pyramid._build(cls._texel_luminance(image), float(scale),
-                       mi.AffineTransform4f(to_world), max_depth, start)
+                       mi.AffineTransform4f(to_world), max_depth, start, mis_compensation)
         return pyramid
 
     # ------------------------------------------------------------------ build
@@ -230,7 +235,7 @@ class EnvPyramid:
         return out
 
     def _build(self, luminance: np.ndarray, scale: float, to_world: mi.AffineTransform4f,
-               max_depth: int | None, start: float) -> None:
+               max_depth: int | None, start: float, mis_compensation: bool = False) -> None:
         if not np.isfinite(scale) or scale < 0:
             raise ValueError(f"EnvPyramid: envmap scale must be finite and >= 0, got {scale}")
         linear = to_world.matrix.numpy()[:3, :3].reshape(3, 3)
@@ -248,6 +253,16 @@ class EnvPyramid:
         depth = auto_depth(height, width, DEFAULT_MAX_DEPTH if max_depth is None else max_depth)
         n = 1 << depth
         finest = scale * _phi_integrals(_theta_integrals(luminance, n), n)
+        radiant_total = float(finest.sum(dtype=np.float64))
+        compensated = False
+        if mis_compensation and radiant_total > 0:
+            # MIS compensation (Karlik et al. 2019): subtract the mean radiance
+            # (cells have equal solid angle) so this strategy concentrates on
+            # what is brighter than average and leaves the rest to BSDF sampling.
+            # A constant map would become black: keep it uncompensated then.
+            sharpened = np.maximum(finest - radiant_total / finest.size, 0.0)
+            if sharpened.max() > 0:
+                finest, compensated = sharpened.astype(np.float32), True
 
         buffer = np.zeros(4 * _block_offset(depth), dtype=np.float32)
         level = finest
@@ -260,8 +275,12 @@ class EnvPyramid:
 
         #: Finest level D; levels 0..D exist.
         self.depth: int = depth
-        #: Integral of scale * luminance over the sphere (radiance x sr), float64.
+        #: Sum of the pyramid's root (the sampling target's integral), float64.
         self.total: float = float(level[0, 0])
+        #: Integral of scale * luminance over the sphere (radiance x sr).
+        self.radiant_total: float = radiant_total
+        #: Whether the mean radiance was subtracted (MIS compensation).
+        self.mis_compensation: bool = compensated
         self.is_black: bool = self.total == 0.0
         self.buffer: mi.Float = mi.Float(buffer)
         self.nbytes: int = buffer.nbytes

@@ -42,7 +42,8 @@ class ProductEnvironment:
     ``pyramid``, ``lobes``, ``warp``.
     """
 
-    def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None):
+    def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None,
+                 mis_compensation: bool = True):
         self.scene = scene
         self.emitter = scene.environment()
         self.pyramid = self.lobes = self.warp = None
@@ -59,7 +60,7 @@ class ProductEnvironment:
         if not self.lobes.has_product_lobes:
             self.reason = "no BSDF in the scene has a lobe worth product sampling (all delta or unsupported)"
             return
-        self.pyramid = EnvPyramid(self.emitter)
+        self.pyramid = EnvPyramid(self.emitter, mis_compensation=mis_compensation)
         if self.pyramid.is_black:
             self.reason = "the environment map is black"
             return
@@ -95,13 +96,13 @@ def mis_weight(pdf_a, pdf_b):
 class SceneCache:
     """Builds :class:`ProductEnvironment` once per scene object."""
 
-    def __init__(self, max_bands: int, sh_depth: int | None):
-        self.max_bands, self.sh_depth = max_bands, sh_depth
+    def __init__(self, max_bands: int, sh_depth: int | None, mis_compensation: bool):
+        self.max_bands, self.sh_depth, self.mis_compensation = max_bands, sh_depth, mis_compensation
         self._scene, self._env = None, None
 
     def get(self, scene: mi.Scene) -> ProductEnvironment:
         if self._scene is not scene:
-            self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth)
+            self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation)
             self._scene = scene
         return self._env
 

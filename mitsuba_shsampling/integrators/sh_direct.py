@@ -7,16 +7,19 @@ import mitsuba as mi
 
 from .environment import SceneCache, check_variant, mis_weight
 
+DEFAULT_MAX_BANDS = 20
+
 
 def read_sh_properties(props: mi.Properties, name: str):
-    """Validated (max_bands, sh_depth) shared by the SH integrators."""
-    max_bands = props.get("max_bands", 20)
+    """Validated (max_bands, sh_depth, mis_compensation) shared by the SH integrators."""
+    max_bands = props.get("max_bands", DEFAULT_MAX_BANDS)
     sh_depth = props.get("sh_depth", -1)
+    mis_compensation = props.get("mis_compensation", True)
     if not 3 <= max_bands <= 32:
         raise ValueError(f"{name}: 'max_bands' must be in [3, 32], got {max_bands}")
     if not -1 <= sh_depth <= 12:
         raise ValueError(f"{name}: 'sh_depth' must be in [0, 12] (or -1 for automatic), got {sh_depth}")
-    return max_bands, (None if sh_depth < 0 else sh_depth)
+    return max_bands, (None if sh_depth < 0 else sh_depth), mis_compensation
 
 
 def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
@@ -55,6 +58,11 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
        - |int|
        - Levels of the product hierarchy that use analytic SH cell integrals
          (-1: chosen from the band count). (Default: -1)
+     * - mis_compensation
+       - |bool|
+       - Product-sample against the environment minus its mean radiance
+         (clamped at 0), leaving the smooth part to BSDF sampling, as
+         Mitsuba's ``envmap`` option of the same name does. (Default: true)
 
     Like Mitsuba's :monosp:`direct`, but environment-map next-event estimation
     draws directions in proportion to (BSDF lobe proxy) x (environment

@@ -33,6 +33,11 @@ class SHPathIntegrator(mi.SamplingIntegrator):
      * - sh_depth
        - |int|
        - Levels of the product hierarchy with analytic SH integrals (-1: automatic). (Default: -1)
+     * - mis_compensation
+       - |bool|
+       - Product-sample against the environment minus its mean radiance
+         (clamped at 0), leaving the smooth part to BSDF sampling, as
+         Mitsuba's ``envmap`` option of the same name does. (Default: true)
 
     Mitsuba's :monosp:`path` with one change: at every vertex whose BSDF has a
     smooth lobe, next-event estimation towards the environment map draws its
