@@ -1,0 +1,283 @@
+"""Specification of ProductWarp: sampling max(f_SH, 0) x environment luminance.
+
+Lobes are zonal Phong / clamped-cosine lobes built here from their per-band
+attenuation (lambda_l y_lm(axis), in the pyramid's grid frame). Coefficients
+are passed as opaque per-call values so that every lobe of one band count
+reuses the same compiled kernels.
+"""
+
+from __future__ import annotations
+
+import glob
+import math
+import os
+import warnings
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba import chi2  # noqa: E402
+
+from mitsuba_shsampling.envmap import EnvPyramid  # noqa: E402
+from mitsuba_shsampling.envmap.synthetic import constant_latlong, sun_sky_latlong  # noqa: E402
+from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
+from mitsuba_shsampling.warp.product import (  # noqa: E402
+    ProductWarp, default_sh_depth, product_fidelity)
+
+ENVMAP_DIR = "/work/shared/envmaps"
+REAL_MAP = os.path.join(ENVMAP_DIR, "immenstadter_horn_1k.hdr")
+TILTED = mi.ScalarAffineTransform4f().rotate((np.array([0.3, 0.8, -0.52]) / np.linalg.norm([0.3, 0.8, -0.52])).tolist(), 40.0)
+
+
+# ----------------------------------------------------------------- helpers
+
+def phong_attenuation(s: float, n_bands: int) -> list[float]:
+    """lambda_l of the normalised Phong lobe (recurrence of math.md section 6)."""
+    lam = [1.0, (s + 1) / (s + 2)]
+    for l in range(n_bands - 2):
+        lam.append(lam[l] * (s - l) / (s + l + 3))
+    return lam[:n_bands]
+
+
+def cosine_attenuation(n_bands: int) -> list[float]:
+    return [math.pi * x for x in phong_attenuation(1.0, n_bands)]
+
+
+def zonal_lobe(attenuation: list[float], axis) -> list[float]:
+    """f_lm = lambda_l y_lm(axis) as Python floats (one lobe)."""
+    basis = sh_eval(mi.Vector3f(*axis), len(attenuation) - 1)
+    return [attenuation[math.isqrt(i)] * float(y.numpy()[0]) for i, y in enumerate(basis)]
+
+
+def opaque(coeffs: list[float]) -> list:
+    return [dr.opaque(mi.Float, c) for c in coeffs]
+
+
+def per_lane_lobes(n_bands: int, count: int, seed: int) -> list:
+    """``count`` Phong lobes (s in [5, 40]) with random axes, one per lane."""
+    rng = np.random.default_rng(seed)
+    axes = rng.normal(size=(3, count)).astype(np.float32)
+    s = mi.Float(rng.uniform(5.0, 40.0, count).astype(np.float32))
+    lam = [mi.Float(1.0), (s + 1) / (s + 2)]
+    for l in range(n_bands - 2):
+        lam.append(lam[l] * (s - l) / (s + l + 3))
+    basis = sh_eval(mi.Vector3f(axes), n_bands - 1)
+    coeffs = [lam[math.isqrt(i)] * y for i, y in enumerate(basis)]
+    dr.eval(*coeffs)
+    return coeffs
+
+
+def leaf_centre_directions(warp: ProductWarp) -> mi.Vector3f:
+    """World directions of the centres of all 4^depth leaves."""
+    cells = 1 << warp.depth
+    centres = (np.arange(cells) + 0.5) / cells
+    z = mi.Float(np.repeat(-1.0 + 2.0 * centres, cells))
+    phi = mi.Float(np.tile(2.0 * math.pi * centres, cells))
+    return warp.pyramid.world_from_grid(EnvPyramid.grid_direction(z, phi))
+
+
+def leaf_probability_sum(warp: ProductWarp, coeffs) -> float:
+    """Integral of the pdf: it is constant on leaves, so a leaf-centre sum is exact."""
+    pdf = warp.pdf(coeffs, leaf_centre_directions(warp)).numpy().astype(np.float64)
+    return float(pdf.sum() * 4.0 * math.pi / 4**warp.depth)
+
+
+def uniform_samples(count: int, seed: int = 7) -> mi.Point2f:
+    rng = np.random.default_rng(seed)
+    return mi.Point2f(rng.random((2, count)).astype(np.float32))
+
+
+#: Pyramid depth of the chi2 tests: 2^7 x 2^7 leaves, one chi2 bin per
+#: half leaf (see :func:`run_chi2`); deep enough that the default sh_depth
+#: (4 for 3 bands, 6 for 10-12 bands) leaves bilinear-lobe levels below it.
+CHI2_DEPTH = 7
+
+
+@pytest.fixture(scope="module")
+def sun_pyramid() -> EnvPyramid:
+    """Sky plus a tiny (0.5 degree), 1e5 times brighter sun, under a tilted to_world."""
+    return EnvPyramid.from_latlong(sun_sky_latlong(128, 256), to_world=TILTED, max_depth=CHI2_DEPTH)
+
+
+@pytest.fixture(scope="module")
+def real_pyramid() -> EnvPyramid:
+    if not os.path.exists(REAL_MAP):
+        pytest.skip(f"{REAL_MAP} not available")
+    return EnvPyramid(mi.load_dict({"type": "envmap", "filename": REAL_MAP}), max_depth=CHI2_DEPTH)
+
+
+def run_chi2(warp: ProductWarp, coeffs: list[float]) -> chi2.ChiSquareTest:
+    """Chi-square test of the warp's samples against its own pdf.
+
+    The test runs in the pyramid's grid frame (a rotation of the world: the
+    density is unchanged), where chi2's (cos theta, phi) bins can be aligned
+    with the leaves: 2^D bins in cos theta and 2^(D+1) in phi put every bin
+    inside one leaf, where the pdf is constant, so chi2's trapezoid
+    integration of the pdf is exact. (Bins cutting across leaf edges, with a
+    1e5 sun, make the integrated pdf off by ~1 % and the test meaningless.)
+    """
+    coeffs = opaque(coeffs)
+    pyramid = warp.pyramid
+    return chi2.ChiSquareTest(
+        domain=chi2.SphericalDomain(),
+        sample_func=lambda u: pyramid.grid_from_world(warp.sample(coeffs, u)[0]),
+        pdf_func=lambda d: warp.pdf(coeffs, pyramid.world_from_grid(d)),
+        sample_dim=2, sample_count=1_000_000, res=1 << warp.depth, ires=2, seed=3)
+
+
+# ------------------------------------------------------------------- chi2
+
+CHI2_LOBES = {
+    "diffuse_cosine_up": (cosine_attenuation(3), (0.0, 0.0, 1.0)),
+    "phong20_rotated": (phong_attenuation(20.0, 10), (0.5, -0.4, 0.77)),
+    # Truncated to 10 bands this lobe rings (negative side lobes): exercises
+    # the clamping at 0. Same band count as above: the kernels are reused.
+    "phong100_rotated": (phong_attenuation(100.0, 10), (-0.6, 0.3, 0.2)),
+}
+
+
+@pytest.mark.parametrize("lobe", sorted(CHI2_LOBES))
+def test_chi2_samples_follow_own_pdf_on_real_map(real_pyramid, lobe):
+    attenuation, axis = CHI2_LOBES[lobe]
+    test = run_chi2(ProductWarp(real_pyramid), zonal_lobe(attenuation, axis))
+    assert test.run(0.01), test.messages
+
+
+@pytest.mark.parametrize("lobe", ["diffuse_cosine_up", "phong20_rotated"])
+def test_chi2_samples_follow_own_pdf_on_sun_map_with_rotated_to_world(sun_pyramid, lobe):
+    attenuation, axis = CHI2_LOBES[lobe]
+    test = run_chi2(ProductWarp(sun_pyramid), zonal_lobe(attenuation, axis))
+    assert test.run(0.01), test.messages
+
+
+# ------------------------------------------------------- exactness of pdf
+
+@pytest.mark.parametrize("sh_depth", [None, 1])
+def test_sample_returns_the_pdf_that_pdf_evaluates(sun_pyramid, sh_depth):
+    warp = ProductWarp(sun_pyramid, sh_depth=sh_depth)
+    count = 1 << 14
+    coeffs = per_lane_lobes(5, count, seed=1)
+    d, pdf = warp.sample(coeffs, uniform_samples(count))
+    again = warp.pdf(coeffs, d)
+    pdf, again = pdf.numpy(), again.numpy()
+    assert np.all(np.isfinite(pdf)) and np.all(pdf > 0)
+    assert np.allclose(np.linalg.norm(d.numpy(), axis=0), 1.0, atol=1e-5)
+    assert np.max(np.abs(again - pdf) / pdf) <= 1e-4
+
+
+@pytest.mark.parametrize("lobe", ["diffuse_cosine_up", "phong20_rotated"])
+def test_pdf_integrates_to_one(sun_pyramid, lobe):
+    attenuation, axis = CHI2_LOBES[lobe]
+    coeffs = opaque(zonal_lobe(attenuation, axis))
+    assert leaf_probability_sum(ProductWarp(sun_pyramid), coeffs) == pytest.approx(1.0, abs=2e-5)
+
+
+def test_samples_land_where_the_pdf_is_positive_in_the_world_frame(sun_pyramid):
+    """Directions are world directions: a lobe around the world-space sun
+    direction concentrates the samples on it."""
+    local_sun = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
+    world_sun = np.array(TILTED @ mi.ScalarVector3f(*local_sun), dtype=np.float64)
+    grid_sun = sun_pyramid.grid_from_world(mi.Vector3f(*map(float, world_sun))).numpy().ravel()
+    warp = ProductWarp(sun_pyramid)
+    coeffs = opaque(zonal_lobe(phong_attenuation(20.0, 10), [float(x) for x in grid_sun]))
+    d, _ = warp.sample(coeffs, uniform_samples(1 << 14))
+    cos_to_sun = world_sun @ d.numpy()
+    # The sun holds most of the product's mass (radiance 1e5 over ~1e-4 sr).
+    assert np.mean(cos_to_sun > math.cos(math.radians(2.0))) > 0.5
+
+
+# ---------------------------------------------------------------- fidelity
+
+def test_fidelity_against_exact_product_is_reported_and_bounded(sun_pyramid):
+    warp = ProductWarp(sun_pyramid)
+    coeffs = zonal_lobe(phong_attenuation(20.0, 10), (0.5, -0.4, 0.77))
+    figures = product_fidelity(warp, coeffs)
+    print("product fidelity (sun map, Phong 20, 10 bands):", figures)
+    assert figures["probability_sum"] == pytest.approx(1.0, abs=2e-5)
+    # Loose: the coarse levels weight children by (lobe integral) x (env
+    # integral), not the integral of the product; that costs fidelity but a
+    # sampler that ignored the lobe or the map would be far off.
+    assert figures["mean_relative_error"] < 0.5
+    assert figures["wasted_mass"] < 0.01
+
+
+def test_fidelity_of_a_constant_lobe_is_exact(sun_pyramid):
+    coeffs = [0.0] * 16
+    coeffs[0] = 1.0
+    figures = product_fidelity(ProductWarp(sun_pyramid), coeffs)
+    assert figures["mean_relative_error"] < 1e-4
+    assert figures["missed_mass"] == 0.0
+
+
+# --------------------------------------------------------------- bad input
+
+def test_bad_pixels_are_sampled_as_zero_with_one_warning():
+    image = sun_sky_latlong(32, 64)
+    image[3, 5] = np.nan
+    image[10, 7] = np.inf
+    image[20, 30] = -5.0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        pyramid = EnvPyramid.from_latlong(image)
+    assert len([w for w in caught if issubclass(w.category, RuntimeWarning)]) == 1
+    warp = ProductWarp(pyramid)
+    coeffs = opaque(zonal_lobe(cosine_attenuation(3), (0.0, 0.0, 1.0)))
+    d, pdf = warp.sample(coeffs, uniform_samples(4096))
+    assert np.all(np.isfinite(d.numpy())) and np.all(np.isfinite(pdf.numpy()))
+    assert np.all(pdf.numpy() > 0)
+    assert leaf_probability_sum(warp, coeffs) == pytest.approx(1.0, abs=2e-5)
+
+
+def test_all_zero_map_gives_no_samples_and_zero_pdf():
+    warp = ProductWarp(EnvPyramid.from_latlong(constant_latlong(16, 32, 0.0)))
+    coeffs = opaque(zonal_lobe(cosine_attenuation(3), (0.0, 0.0, 1.0)))
+    d, pdf = warp.sample(coeffs, uniform_samples(256))
+    assert np.all(pdf.numpy() == 0.0)
+    assert np.all(np.isfinite(d.numpy()))
+    assert np.all(warp.pdf(coeffs, d).numpy() == 0.0)
+
+
+def test_lobe_without_positive_mass_or_non_finite_gives_zero_pdf(sun_pyramid):
+    warp = ProductWarp(sun_pyramid)
+    negative = [0.0] * 9
+    negative[0] = -1.0
+    broken = [float("nan")] * 9
+    for coeffs in (negative, broken):
+        d, pdf = warp.sample(opaque(coeffs), uniform_samples(256))
+        assert np.all(pdf.numpy() == 0.0)
+        assert np.all(np.isfinite(d.numpy()))
+        assert np.all(warp.pdf(opaque(coeffs), d).numpy() == 0.0)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 5), (17, 33)])
+def test_tiny_and_odd_sized_maps_sample_consistently(shape):
+    image = sun_sky_latlong(*shape, sun_radius_deg=5.0, sun_radiance=100.0)
+    warp = ProductWarp(EnvPyramid.from_latlong(image))
+    coeffs = per_lane_lobes(5, 2048, seed=2)
+    d, pdf = warp.sample(coeffs, uniform_samples(2048))
+    again = warp.pdf(coeffs, d).numpy()
+    assert np.all(pdf.numpy() > 0)
+    assert np.max(np.abs(again - pdf.numpy()) / pdf.numpy()) <= 1e-4
+    single = opaque(zonal_lobe(phong_attenuation(20.0, 5), (0.2, 0.1, 0.9)))
+    assert leaf_probability_sum(warp, single) == pytest.approx(1.0, abs=2e-5)
+
+
+# ------------------------------------------------------------- parameters
+
+def test_default_sh_depth_grows_with_band_count_and_is_capped_by_the_map():
+    depths = [default_sh_depth(n) for n in (1, 3, 5, 10, 15, 20, 32)]
+    assert depths == sorted(depths)
+    warp = ProductWarp(EnvPyramid.from_latlong(constant_latlong(4, 8)))  # depth 3
+    coeffs = opaque(zonal_lobe(phong_attenuation(20.0, 10), (0.0, 0.0, 1.0)))
+    assert leaf_probability_sum(warp, coeffs) == pytest.approx(1.0, abs=2e-5)
+
+
+def test_invalid_sh_depth_is_rejected(sun_pyramid):
+    with pytest.raises(ValueError):
+        ProductWarp(sun_pyramid, sh_depth=-1)
+    with pytest.raises(TypeError):
+        ProductWarp(sun_pyramid, sh_depth=2.5)
