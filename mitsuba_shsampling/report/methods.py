@@ -69,8 +69,10 @@ METHODS: tuple[Method, ...] = (
     Method("sh_direct", "SH product + BSDF (MIS)",
            {"type": "sh_direct", "emitter_samples": 1, "bsdf_samples": 1},
            plugin="sh_direct", product_sampling=True),
+    # Without BSDF samples nothing covers the directions the compensated
+    # product never draws, so product-only sampling must not compensate.
     Method("sh_product_only", "SH product sampling only (2 samples)",
-           {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0},
+           {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0, "mis_compensation": False},
            plugin="sh_direct", product_sampling=True),
     Method("path", "path tracer (envmap + BSDF, MIS)", {"type": "path"}, family=MULTI_BOUNCE),
     Method("sh_path", "SH product path tracer", {"type": "sh_path"}, family=MULTI_BOUNCE,
