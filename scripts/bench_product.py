@@ -1,0 +1,198 @@
+"""Throughput and fidelity of ProductWarp (SH lobe x environment map).
+
+For every map and band count: product sampling throughput (``sample``, which
+returns direction and pdf, and ``pdf`` alone), Mitsuba's own
+``envmap.sample_direction`` throughput measured right before it in the same
+process, and the fidelity of the sampled distribution against the exact
+normalised product (:func:`mitsuba_shsampling.warp.product.product_fidelity`,
+averaged over a few fixed lobes). Prints a table and writes JSON.
+
+    python3 scripts/bench_product.py [--quick] [--json OUT.json] [--envmap FILE.hdr]
+                                     [--bands 3 5 10 15 20] [--sh-depths 2 4 6]
+
+Maps: ``--envmap FILE`` if given, else every map in ../shared/envmaps, else a
+generated 512x1024 sun-and-sky map. Throughput lanes carry one Phong lobe
+each (random axis, exponent s = n^2 / 5 for n bands, i.e. s = 20 at 10
+bands), coefficients evaluated beforehand (as an integrator would hold
+them); times are the median of warm runs (kernel compilation excluded and
+reported separately). With ``--sh-depths`` every listed sh_depth is measured
+(the trade-off table); otherwise the default of each band count.
+
+Memory per shading point: the n^2 float32 coefficients are the only
+per-point data between kernels; the walk keeps about n(n+1)/2 + 2n + 16
+further floats per lane in registers while it runs (the SH state of
+:class:`~mitsuba_shsampling.warp.hsw.SHCellWeights`), freed afterwards.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import math
+import os
+import statistics
+import time
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling.envmap import EnvPyramid  # noqa: E402
+from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong  # noqa: E402
+from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
+from mitsuba_shsampling.warp.product import (  # noqa: E402
+    ProductWarp, default_sh_depth, product_fidelity)
+
+SHARED_ENVMAPS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "envmaps")
+#: Lobe axes (grid frame) of the fidelity figures: zenith, horizon, nadir-ish, oblique.
+FIDELITY_AXES = [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.3, -0.5, -0.8), (-0.6, 0.6, 0.5)]
+
+
+def phong_exponent(n_bands: int) -> float:
+    """Phong exponent a band-n expansion represents reasonably (s = 20 at 10 bands)."""
+    return n_bands * n_bands / 5.0
+
+
+def phong_lobes(n_bands: int, axes: mi.Vector3f, s: float) -> list:
+    """f_lm = lambda_l y_lm(axis) of the normalised Phong lobe, per lane."""
+    lam = [1.0, (s + 1) / (s + 2)]
+    for l in range(n_bands - 2):
+        lam.append(lam[l] * (s - l) / (s + l + 3))
+    basis = sh_eval(axes, n_bands - 1)
+    return [lam[math.isqrt(i)] * y for i, y in enumerate(basis)]
+
+
+def timed(run, repeats: int) -> tuple[float, float]:
+    """(first call incl. compilation, median of ``repeats`` warm calls), seconds."""
+    start = time.perf_counter()
+    run()
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - start)
+    return first, statistics.median(times)
+
+
+def load_maps(args) -> list[tuple[str, mi.Emitter]]:
+    if args.envmap:
+        files = [args.envmap]
+    else:
+        files = sorted(glob.glob(os.path.join(SHARED_ENVMAPS, "*.hdr")))
+    if files:
+        return [(os.path.splitext(os.path.basename(f))[0],
+                 mi.load_dict({"type": "envmap", "filename": os.path.abspath(f)})) for f in files]
+    return [("generated_sun_sky_512x1024", envmap_emitter(sun_sky_latlong(512, 1024)))]
+
+
+def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
+    pyramid = EnvPyramid(emitter)
+    lanes = args.lanes
+    rng = np.random.default_rng(0)
+    sampler = mi.PCG32(lanes)
+
+    def fresh_u() -> mi.Point2f:
+        u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
+        dr.eval(u)
+        return u
+
+    def mitsuba_run():
+        ds, weight = emitter.sample_direction(dr.zeros(mi.Interaction3f, lanes), fresh_u())
+        dr.eval(ds.d, ds.pdf, weight)
+        dr.sync_thread()
+
+    rows = []
+    for n_bands in args.bands:
+        s = phong_exponent(n_bands)
+        axes = mi.Vector3f(rng.normal(size=(3, lanes)).astype(np.float32))
+        coeffs = phong_lobes(n_bands, axes, s)
+        dr.eval(*coeffs)
+        fidelity_lobes = [[float(c.numpy()[0]) for c in phong_lobes(n_bands, mi.Vector3f(*axis), s)]
+                          for axis in FIDELITY_AXES[:args.fidelity_lobes]]
+        for sh_depth in (args.sh_depths or [None]):
+            warp = ProductWarp(pyramid, sh_depth=sh_depth)
+
+            def sample_run():
+                d, pdf = warp.sample(coeffs, fresh_u())
+                dr.eval(d, pdf)
+                dr.sync_thread()
+
+            def pdf_run():
+                d = mi.warp.square_to_uniform_sphere(fresh_u())
+                dr.eval(d)
+                dr.eval(warp.pdf(coeffs, d))
+                dr.sync_thread()
+
+            # Mitsuba right before and after the product run: load on a shared
+            # machine drifts, and the ratio is what the target is about.
+            _, mitsuba_before = timed(mitsuba_run, args.repeats)
+            compile_s, sample_s = timed(sample_run, args.repeats)
+            _, pdf_s = timed(pdf_run, args.repeats)
+            _, mitsuba_after = timed(mitsuba_run, args.repeats)
+            mitsuba_s = 0.5 * (mitsuba_before + mitsuba_after)
+            figures = [product_fidelity(warp, lobe) for lobe in fidelity_lobes]
+            mean = {key: float(np.mean([f[key] for f in figures])) for key in figures[0]}
+            rows.append(dict(
+                envmap=name, bands=n_bands, coefficients=n_bands * n_bands, phong_exponent=s,
+                sh_depth=default_sh_depth(n_bands) if sh_depth is None else sh_depth,
+                depth=warp.depth, lanes=lanes,
+                msamples_per_s=lanes / sample_s / 1e6,
+                pdf_msamples_per_s=lanes / pdf_s / 1e6,
+                mitsuba_envmap_msamples_per_s=lanes / mitsuba_s / 1e6,
+                ratio_to_mitsuba=mitsuba_s / sample_s,
+                first_call_s=compile_s,
+                product_fidelity=mean["mean_relative_error"],
+                relative_variance=mean["relative_variance"],
+                missed_mass=mean["missed_mass"],
+                wasted_mass=mean["wasted_mass"],
+                fidelity_lobes=len(figures),
+                coefficient_bytes_per_point=4 * n_bands * n_bands,
+                walk_register_bytes_per_point=4 * (n_bands * (n_bands + 1) // 2 + 2 * n_bands + 16),
+                pyramid_bytes=pyramid.nbytes))
+            print(format_row(rows[-1]), flush=True)
+    return rows
+
+
+HEADER = (f"{'envmap':<28} {'bands':>5} {'shd':>3} {'M/s':>6} {'pdf M/s':>7} {'Mi M/s':>6} "
+          f"{'ratio':>5} {'1st s':>5} {'fidelity':>8} {'rel.var':>7} {'missed':>7} {'wasted':>7} {'B/pt':>5}")
+
+
+def format_row(r: dict) -> str:
+    return (f"{r['envmap']:<28} {r['bands']:>5} {r['sh_depth']:>3} {r['msamples_per_s']:>6.2f} "
+            f"{r['pdf_msamples_per_s']:>7.2f} {r['mitsuba_envmap_msamples_per_s']:>6.2f} "
+            f"{r['ratio_to_mitsuba']:>5.2f} {r['first_call_s']:>5.1f} {r['product_fidelity']:>8.4f} "
+            f"{r['relative_variance']:>7.3f} {r['missed_mass']:>7.4f} {r['wasted_mass']:>7.4f} "
+            f"{r['coefficient_bytes_per_point']:>5}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="2^18 lanes, bands 3 and 10, one fidelity lobe (< 1 minute)")
+    parser.add_argument("--json", default="product_bench.json", help="output file")
+    parser.add_argument("--envmap", help="use this map instead of the shared ones")
+    parser.add_argument("--bands", type=int, nargs="+", help="band counts (default 3 5 10 15 20)")
+    parser.add_argument("--sh-depths", type=int, nargs="+", help="sh_depth values to sweep")
+    parser.add_argument("--lanes", type=int, help="lanes per call (default 2^20, quick 2^18)")
+    parser.add_argument("--repeats", type=int, help="warm runs per timing (median)")
+    args = parser.parse_args()
+    args.bands = args.bands or ([3, 10] if args.quick else [3, 5, 10, 15, 20])
+    args.lanes = args.lanes or (1 << 18 if args.quick else 1 << 20)
+    args.repeats = args.repeats or (3 if args.quick else 5)
+    args.fidelity_lobes = 1 if args.quick else len(FIDELITY_AXES)
+
+    print(HEADER, flush=True)
+    rows = []
+    for name, emitter in load_maps(args):
+        rows += bench_map(name, emitter, args)
+    with open(args.json, "w") as f:
+        json.dump(rows, f, indent=1)
+    print(f"wrote {len(rows)} records to {args.json}")
+
+
+if __name__ == "__main__":
+    main()
