@@ -171,3 +171,52 @@ def function_cell_integral(coeffs: list, z0, z1, phi0, phi1):
     order = bands_of(coeffs) - 1
     zi = z_integrals(legendre_antiderivatives(z0, order), legendre_antiderivatives(z1, order))
     return contract_phi(contract_z(coeffs, zi, order), phi_integrals(phi0, phi1, order))
+
+
+def zonal_antiderivatives(z, order: int) -> list:
+    """Antiderivatives of the normalised zonal functions K_l^0 P_l(z), l = 0..order.
+
+    Only the m = 0 column of :func:`legendre_antiderivatives`, in O(order)
+    operations instead of O(order^2), from the classical identity
+    (2l+1) P_l = d/dz (P_{l+1} - P_{l-1})::
+
+        F_0 = z,   F_l = (P_{l+1}(z) - P_{l-1}(z)) / (2l + 1)   (l >= 1)
+
+    Returns a list of ``order + 1`` values K_l^0 F_l(z). The integration
+    constant differs from :func:`legendre_antiderivatives`; only differences
+    of values from the same function are meaningful. Integrating the zonal
+    part over a full-azimuth strip [z0, z1] x [0, 2 pi) needs nothing else,
+    since every m != 0 term integrates to 0 over the full circle.
+    """
+    check_order(order)
+    p = [1.0 + 0 * z, z]  # Bonnet's recurrence: unnormalised P_l is bounded by 1 on [-1, 1]
+    for l in range(1, order + 1):
+        p.append(((2 * l + 1) / (l + 1)) * z * p[l] - (l / (l + 1)) * p[l - 1])
+    out = [z / math.sqrt(4.0 * math.pi)]
+    for l in range(1, order + 1):
+        k_l = math.sqrt((2 * l + 1) / (4.0 * math.pi))
+        out.append((k_l / (2 * l + 1)) * (p[l + 1] - p[l - 1]))
+    return out
+
+
+def phi_integrals_centred(cos_c, sin_c, half_width: float, order: int) -> list:
+    """:func:`phi_integrals` of [c - h, c + h] from cos(c), sin(c) and a constant h.
+
+    In a dyadic hierarchy the half-width of every cell at a level is the
+    same Python float, so the factors 2/m sin(m h) are constants folded into
+    the trace and no per-lane sine or cosine is evaluated: cos/sin(m c) come
+    from the Chebyshev recurrence on the carried cos(c), sin(c). Same layout
+    as :func:`phi_integrals` (index ``m + order``).
+    """
+    out = [None] * (2 * order + 1)
+    out[order] = 2.0 * half_width + 0 * cos_c
+    cc_prev, cc_cur = 1.0, cos_c
+    sc_prev, sc_cur = 0.0, sin_c
+    two_cos = 2.0 * cos_c
+    for m in range(1, order + 1):
+        w = 2.0 / m * math.sin(m * half_width)
+        out[order + m] = w * cc_cur
+        out[order - m] = w * sc_cur
+        cc_prev, cc_cur = cc_cur, dr.fma(two_cos, cc_cur, -cc_prev)
+        sc_prev, sc_cur = sc_cur, dr.fma(two_cos, sc_cur, -sc_prev)
+    return out

@@ -73,7 +73,7 @@ def grid_coordinates(d: mi.Vector3f):
 def _normalised_weights(w):
     """Clamp child weights at 0; return them, their total and a validity mask."""
     w = [dr.maximum(dr.select(dr.isnan(wi), 0.0, wi), 0.0) for wi in w]
-    total = (w[0] + w[1]) + (w[2] + w[3])
+    total = w[0] + w[1] if len(w) == 2 else (w[0] + w[1]) + (w[2] + w[3])
     valid = dr.isfinite(total) & (total > 0)
     return w, total, valid
 
@@ -111,6 +111,66 @@ def walk_sample(provider, depth: int, u: mi.Point2f):
         iz = 2 * iz + dr.select(a, 1, 0)
         iphi = 2 * iphi + dr.select(b, 1, 0)
     return Cell(depth, iz, iphi), mi.Point2f(uz, uphi), prob, valid, state
+
+
+def _choose_half(w_lo, w_hi, u):
+    """One binary split driven by the sample ``u`` in [0, 1).
+
+    Returns (upper half chosen, probability of the chosen half, ``u``
+    rescaled into the chosen half, valid mask).
+    """
+    (w_lo, w_hi), total, ok = _normalised_weights((w_lo, w_hi))
+    p_lo = w_lo / dr.select(ok, total, 1.0)
+    hi = u >= p_lo
+    u = dr.select(hi, (u - p_lo) / (1.0 - p_lo), u / p_lo)
+    u = dr.clip(dr.select(dr.isfinite(u), u, 0.0), 0.0, 0.99999994)
+    return hi, dr.select(hi, w_hi, w_lo) / dr.select(ok, total, 1.0), u, ok
+
+
+def walk_sample_1d(provider, depth: int, u, x0: float, x1: float):
+    """Binary-tree version of :func:`walk_sample` over the interval [x0, x1].
+
+    ``provider`` has ``root()``, ``children(state, level, lo, mid, hi)``
+    returning the two half weights (lower, upper) of the cell [lo, hi], and
+    ``advance(state, level, upper)``. Returns (leaf index, rescaled sample,
+    leaf probability, valid mask, provider state at the leaf); leaf i covers
+    [x0 + i w, x0 + (i+1) w], w = (x1 - x0) / 2^depth.
+    """
+    index, prob, valid = mi.UInt32(0), mi.Float(1.0), mi.Bool(True)
+    u = dr.clip(u, 0.0, 0.99999994)
+    state = provider.root()
+    for level in range(depth):
+        lo, mid, hi = _interval(level, index, x0, x1)
+        upper, p, u, ok = _choose_half(*provider.children(state, level, lo, mid, hi), u)
+        prob *= p
+        valid &= ok
+        state = provider.advance(state, level, upper)
+        index = 2 * index + dr.select(upper, 1, 0)
+    return index, u, prob, valid, state
+
+
+def walk_pdf_1d(provider, depth: int, x, x0: float, x1: float):
+    """Binary-tree version of :func:`walk_pdf`: descend towards ``x`` in [x0, x1].
+
+    Returns (leaf index, leaf probability, provider state at the leaf).
+    """
+    index, prob = mi.UInt32(0), mi.Float(1.0)
+    state = provider.root()
+    for level in range(depth):
+        lo, mid, hi = _interval(level, index, x0, x1)
+        (w_lo, w_hi), total, ok = _normalised_weights(provider.children(state, level, lo, mid, hi))
+        upper = x >= mid
+        prob *= dr.select(ok, dr.select(upper, w_hi, w_lo) / dr.select(ok, total, 1.0), 0.0)
+        state = provider.advance(state, level, upper)
+        index = 2 * index + dr.select(upper, 1, 0)
+    return index, prob, state
+
+
+def _interval(level: int, index, x0: float, x1: float):
+    """(lower bound, midpoint, upper bound) of cell ``index`` at ``level``."""
+    width = (x1 - x0) / 2**level
+    lo = dr.fma(mi.Float(index), width, x0)
+    return lo, lo + 0.5 * width, lo + width
 
 
 def walk_pdf(provider, depth: int, z, phi):

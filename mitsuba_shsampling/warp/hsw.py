@@ -1,15 +1,27 @@
-"""Hierarchical sample warping of spherical-harmonic functions.
+"""Hierarchical sample warping of spherical-harmonic functions (quadtree order).
 
 :class:`SHWarp` draws directions distributed like max(f, 0) for an SH
 expansion f given per lane (each SIMD lane may carry its own coefficient
 vector) and evaluates the exact density of that warp for any direction.
+This is the method of Jarosz et al. 2009: a 2x2 split of the equal-area
+(z, phi) cylinder at every level. :mod:`.strip_hsw` splits the same leaves
+in a cheaper order.
 
 Node weights are analytic integrals of f over (z, phi) cells, computed with
 the separable sweep of :mod:`mitsuba_shsampling.sh.integrals`: per level one
 row of Legendre antiderivatives at the new z midpoint (the lower bound's row
 is carried down the tree), one z-contraction (n^2 multiply-adds) for the lower
-half (the upper half is the parent row minus it), and four phi-contractions.
-Negative cell integrals (SH ringing) are clamped to probability 0.
+half (the upper half is the parent row minus it), and two phi-contractions for
+the left and two for the right children. The phi half-width of a
+level is a Python constant and the cell centre's cos/sin is carried down the
+tree by angle addition, so no sine or cosine is evaluated per level. Negative
+cell integrals (SH ringing) are clamped to probability 0.
+
+Leaves (parameter ``leaf``): ``"uniform"`` places the point uniformly in the
+leaf cell; ``"bilinear"`` warps it by the bilinear interpolant of max(f, 0) at
+the leaf's four corners (Mitsuba's ``square_to_bilinear``), which follows the
+lobe's slope inside the leaf. Either way the pdf is (product of branch
+probabilities) x (leaf density) / (leaf solid angle): exact for the warp.
 
 Frame: the SH frame itself (z-up); directions and densities are per unit
 solid angle in that frame.
@@ -21,13 +33,14 @@ import math
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
-from ..sh.basis import bands_of
-from ..sh.integrals import contract_phi, contract_z, legendre_antiderivatives, phi_integrals
-from .hierarchy import check_depth, grid_coordinates, grid_direction, walk_pdf, walk_sample
+from ..sh.basis import bands_of, sh_eval_sum_on_circle
+from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives,
+                            phi_integrals_centred)
+from .hierarchy import Cell, check_depth, grid_coordinates, grid_direction, walk_pdf, walk_sample
 
 DEFAULT_DEPTH = 8
+LEAF_KINDS = ("uniform", "bilinear")
 
 
 def _as_floats(coeffs) -> list:
@@ -35,11 +48,18 @@ def _as_floats(coeffs) -> list:
     return [c if isinstance(c, mi.Float) else mi.Float(c) for c in coeffs]
 
 
+def check_leaf(leaf) -> str:
+    if leaf not in LEAF_KINDS:
+        raise ValueError(f"leaf must be one of {LEAF_KINDS}, got {leaf!r}")
+    return leaf
+
+
 class SHCellWeights:
     """Weight provider: integrals of an SH expansion over the four children.
 
     State carried down the tree: the antiderivative row at the cell's lower z
-    bound and the z-contraction A[m] of the whole cell.
+    bound, the z-contraction A[m] of the whole cell and cos/sin of the cell's
+    phi centre.
     """
 
     def __init__(self, coeffs: list):
@@ -52,32 +72,82 @@ class SHCellWeights:
         self._root_cell = contract_z(coeffs, {k: float(hi[k] - lo[k]) for k in hi}, self.order)
 
     def root(self):
-        return {"f_lo": self._root_lo, "a_cell": self._root_cell}
+        # The root spans [0, 2 pi): centre pi.
+        return {"f_lo": self._root_lo, "a_cell": self._root_cell,
+                "cos_c": mi.Float(-1.0), "sin_c": mi.Float(0.0)}
 
     def children(self, state, cell):
         f_mid = legendre_antiderivatives(cell.zm, self.order)
         z_lo = {k: f_mid[k] - state["f_lo"][k] for k in f_mid}
         a_lo = contract_z(self.coeffs, z_lo, self.order)
         a_hi = [ac - al for ac, al in zip(state["a_cell"], a_lo)]
-        left = phi_integrals(cell.phi0, cell.phim, self.order)
-        right = phi_integrals(cell.phim, cell.phi1, self.order)
-        state.update(f_mid=f_mid, a_lo=a_lo, a_hi=a_hi)
+        # Children's centres c -+ h by angle addition (h is a Python constant).
+        h = math.pi / 2 ** (cell.level + 1)
+        cos_h, sin_h = math.cos(h), math.sin(h)
+        cos_c, sin_c = state["cos_c"], state["sin_c"]
+        cos_l, sin_l = dr.fma(cos_c, cos_h, sin_c * sin_h), dr.fma(sin_c, cos_h, -cos_c * sin_h)
+        cos_r, sin_r = dr.fma(cos_c, cos_h, -sin_c * sin_h), dr.fma(sin_c, cos_h, cos_c * sin_h)
+        left = phi_integrals_centred(cos_l, sin_l, h, self.order)
+        right = phi_integrals_centred(cos_r, sin_r, h, self.order)
+        state.update(f_mid=f_mid, a_lo=a_lo, a_hi=a_hi, centres=(cos_l, sin_l, cos_r, sin_r))
         return (contract_phi(a_lo, left), contract_phi(a_lo, right),
                 contract_phi(a_hi, left), contract_phi(a_hi, right))
 
     def advance(self, state, cell, a, b):
+        cos_l, sin_l, cos_r, sin_r = state["centres"]
         return {
             "f_lo": {k: dr.select(a, state["f_mid"][k], v) for k, v in state["f_lo"].items()},
             "a_cell": [dr.select(a, hi, lo) for lo, hi in zip(state["a_lo"], state["a_hi"])],
+            "cos_c": dr.select(b, cos_r, cos_l),
+            "sin_c": dr.select(b, sin_r, sin_l),
         }
 
 
+def _leaf_corners(coeffs: list, leaf: Cell):
+    """max(f, 0) at the leaf corners as (v00, v10, v01, v11) for Mitsuba's
+    bilinear warp, x = phi and y = z, scaled to mean 1; all ones (uniform)
+    where they vanish."""
+    lo = sh_eval_sum_on_circle(coeffs, leaf.z0, [leaf.phi0, leaf.phi1])
+    hi = sh_eval_sum_on_circle(coeffs, leaf.z1, [leaf.phi0, leaf.phi1])
+    v = [dr.maximum(c, 0.0) for c in lo + hi]
+    total = (v[0] + v[1]) + (v[2] + v[3])
+    flat = ~(dr.isfinite(total) & (total > 0))
+    # Mitsuba's bilinear warp expects an interpolant with unit integral (mean 1).
+    scale = 4.0 / dr.select(flat, 1.0, total)
+    return [dr.select(flat, 1.0, c * scale) for c in v]
+
+
+def sample_leaf(leaf_kind: str, coeffs: list, leaf: Cell, t: mi.Point2f):
+    """Place the rescaled sample ``t`` = (t_z, t_phi) in the leaf cell.
+
+    Returns ((z, phi), density w.r.t. the leaf's unit square).
+    """
+    if leaf_kind == "bilinear":
+        p, density = mi.warp.square_to_bilinear(*_leaf_corners(coeffs, leaf), mi.Point2f(t.y, t.x))
+        t = mi.Point2f(p.y, p.x)
+    else:
+        density = mi.Float(1.0)
+    return dr.lerp(leaf.z0, leaf.z1, t.x), dr.lerp(leaf.phi0, leaf.phi1, t.y), density
+
+
+def leaf_density(leaf_kind: str, coeffs: list, leaf: Cell, z, phi):
+    """Density of :func:`sample_leaf` at (z, phi) w.r.t. the leaf's unit square."""
+    if leaf_kind != "bilinear":
+        return mi.Float(1.0)
+    t_z = dr.clip((z - leaf.z0) / (leaf.z1 - leaf.z0), 0.0, 1.0)
+    t_phi = dr.clip((phi - leaf.phi0) / (leaf.phi1 - leaf.phi0), 0.0, 1.0)
+    return mi.warp.square_to_bilinear_pdf(*_leaf_corners(coeffs, leaf), mi.Point2f(t_phi, t_z))
+
+
 class SHWarp:
-    """Hierarchical sample warping of a non-negative part of an SH function.
+    """Hierarchical sample warping of the non-negative part of an SH function.
 
     Parameter ``depth`` (int, default 8):
         Number of 2x2 levels; the leaves are 2^depth x 2^depth equal-area
-        cells, inside which points are placed uniformly.
+        cells. float32 samples support depth <= 12 (see :mod:`.hierarchy`).
+
+    Parameter ``leaf`` (str, default ``"uniform"``):
+        ``"uniform"`` or ``"bilinear"`` placement inside the leaf.
 
     ``sample(coeffs, u)`` and ``pdf(coeffs, d)`` take ``coeffs`` as a list of
     n^2 per-lane ``mi.Float`` (or Python floats shared by all lanes), SH
@@ -86,21 +156,21 @@ class SHWarp:
     get pdf 0 and a harmless unit direction.
     """
 
-    def __init__(self, depth: int = DEFAULT_DEPTH):
+    def __init__(self, depth: int = DEFAULT_DEPTH, leaf: str = "uniform"):
         self.depth = check_depth(depth)
+        self.leaf = check_leaf(leaf)
 
     def sample(self, coeffs, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a direction; returns (direction, pdf)."""
-        provider = SHCellWeights(_as_floats(coeffs))
-        leaf, t, prob, valid, _ = walk_sample(provider, self.depth, u)
-        z = dr.lerp(leaf.z0, leaf.z1, t.x)
-        phi = dr.lerp(leaf.phi0, leaf.phi1, t.y)
+        coeffs = _as_floats(coeffs)
+        leaf, t, prob, valid, _ = walk_sample(SHCellWeights(coeffs), self.depth, u)
+        z, phi, density = sample_leaf(self.leaf, coeffs, leaf, t)
         d = dr.select(valid, grid_direction(z, phi), mi.warp.square_to_uniform_sphere(u))
-        return d, dr.select(valid, prob / leaf.area, 0.0)
+        return d, dr.select(valid, prob * density / leaf.area, 0.0)
 
     def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces ``d``."""
-        provider = SHCellWeights(_as_floats(coeffs))
+        coeffs = _as_floats(coeffs)
         z, phi = grid_coordinates(d)
-        leaf, _, prob, _ = walk_pdf(provider, self.depth, z, phi)
-        return prob / leaf.area
+        leaf, _, prob, _ = walk_pdf(SHCellWeights(coeffs), self.depth, z, phi)
+        return prob * leaf_density(self.leaf, coeffs, leaf, z, phi) / leaf.area
