@@ -29,10 +29,10 @@ class SHPathIntegrator(mi.SamplingIntegrator):
        - Hide directly visible emitters. (Default: false)
      * - max_bands
        - |int|
-       - Cap on the SH band count of the lobe proxies (3..32). (Default: 20)
+       - Cap on the SH band count of the lobe proxies (3..32). (Default: 8)
      * - sh_depth
        - |int|
-       - Levels of the product hierarchy with analytic SH integrals (-1: automatic). (Default: -1)
+       - Levels of the product hierarchy with analytic SH integrals (-1: automatic). (Default: 3)
      * - mis_compensation
        - |bool|
        - Product-sample against the environment minus its mean radiance
