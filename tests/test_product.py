@@ -277,7 +277,8 @@ def test_default_sh_depth_grows_with_band_count_and_is_capped_by_the_map():
 
 
 def test_invalid_sh_depth_is_rejected(sun_pyramid):
-    with pytest.raises(ValueError):
-        ProductWarp(sun_pyramid, sh_depth=-1)
+    for bad in (-1, 0, 13):
+        with pytest.raises(ValueError):
+            ProductWarp(sun_pyramid, sh_depth=bad)
     with pytest.raises(TypeError):
         ProductWarp(sun_pyramid, sh_depth=2.5)

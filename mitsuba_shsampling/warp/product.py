@@ -38,6 +38,17 @@ from .hsw import SHCellWeights, _as_floats
 LEAF_EDGE_MARGIN = 2.0**-10
 
 
+def check_sh_depth(sh_depth) -> int:
+    """Validate ``sh_depth``: at least 1, so that the root split uses the
+    lobe's exact cell integrals. They decide whether the lobe has positive
+    mass at all (pdf 0 otherwise); a bilinear estimate from the root's
+    corners (the two poles) could not."""
+    check_depth(sh_depth)
+    if sh_depth < 1:
+        raise ValueError(f"sh_depth must be >= 1, got {sh_depth}")
+    return sh_depth
+
+
 def default_sh_depth(n_bands: int) -> int:
     """Levels with analytic SH weights: cells down to ~1/4 of the lobe's
     finest feature (pi/n), i.e. 2^k >= 4n."""
@@ -124,7 +135,7 @@ class ProductWarp:
         self.pyramid = pyramid
         self.depth = check_depth(pyramid.depth)
         #: Levels with analytic SH weights (None: chosen from the band count).
-        self.sh_depth = None if sh_depth is None else check_depth(sh_depth)
+        self.sh_depth = None if sh_depth is None else check_sh_depth(sh_depth)
 
     def _provider(self, coeffs):
         coeffs = _as_floats(coeffs)
