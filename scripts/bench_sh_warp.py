@@ -46,7 +46,7 @@ FULL_SWEEP = [(w, leaf, n, d) for n in (3, 5, 10, 15, 20)
                                       ("strip", "uniform", (8, 10, 12)),
                                       ("strip", "bilinear", (6, 8, 10)))
               for d in depths]
-QUICK_SWEEP = [("strip", "bilinear", 5, 8), ("strip", "bilinear", 20, 8), ("quadtree", "uniform", 5, 6)]
+QUICK_SWEEP = [("strip", "uniform", 5, 12), ("strip", "uniform", 20, 12), ("quadtree", "uniform", 5, 6)]
 
 
 def _random_inputs(lanes: int, seed: int):
