@@ -27,7 +27,7 @@ METRIC_KEYS = ("spp", "mse", "rel_mse", "time_s", "efficiency", "bias_ok")
 def tiny_report(tmp_path_factory):
     out = tmp_path_factory.mktemp("report")
     code = cli.main(["compare", scenes.builtin_scenes()["sphere_ggx010"], "--out", str(out), "--res", "24", "--spp", "2", "--passes", "2", "--ref-spp", "16",
-                     "--sampler", "independent", "--convergence-max-spp", "2",
+                     "--sampler", "independent", "--convergence-max-spp", "1",
                      "--cache-dir", str(out / "cache"), "--no-progress"])
     assert code == 0
     with open(out / "report.json") as f:

@@ -203,7 +203,7 @@ class SceneComparison:
             self.bar.set_description(f"{self.name}/{sampler}/{m.name} equal spp")
             try:
                 r = renderers[m.name] = MethodRenderer(self.path, m, settings)
-                r.warm_up(equal_ray_spp(s.spp, m))
+                r.warm_up(admissible_spp(sampler, equal_ray_spp(s.spp, m)))
                 self.bar.update(1)
                 passes = r.passes(equal_ray_spp(s.spp, m), s.passes, s.seed)
             except Exception as err:
@@ -236,8 +236,11 @@ class SceneComparison:
                                            exposure, self.root))
             results[m.name]["equal_time"] = entry
 
-        # Convergence sweep: one render per spp value.
+        # Convergence sweep: one render per spp value, with the first sampler only (the
+        # others recompile their kernels for every new sample count).
         max_spp = 4 * s.spp if s.convergence_max_spp is None else s.convergence_max_spp
+        if sampler != s.samplers[0]:
+            max_spp = 0
         for m in methods:
             points = []
             if max_spp > 0:
@@ -255,13 +258,15 @@ class SceneComparison:
 
         self.add_ratios(results)
         maps = self.write_maps(folder, methods, equal_spp, refs)
-        plot = convergence_figure({results[n]["label"]: results[n]["convergence"] for n in results},
-                                  f"{self.name}, {sampler} sampler")
-        plot_path = os.path.join(folder, "convergence.png")
-        with open(plot_path, "wb") as f:
-            f.write(plot)
-        return {"sampler": sampler, "methods": results, "maps": maps,
-                "convergence_plot": self.rel(plot_path)}
+        run = {"sampler": sampler, "methods": results, "maps": maps, "convergence_plot": None}
+        if max_spp > 0:
+            plot = convergence_figure({results[n]["label"]: results[n]["convergence"] for n in results},
+                                      f"{self.name}, {sampler} sampler")
+            plot_path = os.path.join(folder, "convergence.png")
+            with open(plot_path, "wb") as f:
+                f.write(plot)
+            run["convergence_plot"] = self.rel(plot_path)
+        return run
 
     @staticmethod
     def baseline_name(method: Method, results: dict) -> str:
@@ -306,9 +311,9 @@ class SceneComparison:
 def count_renders(settings: CompareSettings, n_methods: int) -> int:
     """Renders the progress bar counts for one scene (an estimate before methods are known)."""
     sweep = 0 if settings.convergence_max_spp == 0 else len(
-        convergence_spps("independent", settings.convergence_max_spp or 4 * settings.spp))
-    per_sampler = n_methods * (1 + 2 * settings.passes + sweep)
-    return per_sampler * len(settings.samplers) + REFERENCE_CHUNKS
+        convergence_spps(settings.samplers[0], settings.convergence_max_spp or 4 * settings.spp))
+    per_sampler = n_methods * (1 + 2 * settings.passes)
+    return per_sampler * len(settings.samplers) + n_methods * sweep + REFERENCE_CHUNKS
 
 
 def write_csv(path: str, report: dict) -> None:

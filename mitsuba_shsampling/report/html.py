@@ -114,9 +114,13 @@ def write_html(path: str, report: dict) -> None:
                         if name != "_scale"]
                 page.add(f"<h4>{title}; shared log colour scale {lo:.3g} .. {hi:.3g} (inferno)</h4>"
                          f"<div class='row'>{''.join(figs)}</div>")
-            page.add("<h4>Convergence (one render per spp)</h4>")
-            with open(os.path.join(page.root, run["convergence_plot"]), "rb") as f:
-                page.add(f'<img src="{data_uri(f.read())}" alt="convergence">')
+            if run["convergence_plot"]:
+                page.add("<h4>Convergence (one render per spp)</h4>")
+                with open(os.path.join(page.root, run["convergence_plot"]), "rb") as f:
+                    page.add(f'<img src="{data_uri(f.read())}" alt="convergence">')
+            else:
+                page.add("<p>No convergence sweep with this sampler (it runs with the first sampler "
+                         "only: the others recompile their kernels for every sample count).</p>")
     page.add('<p>Data: <a href="report.json">report.json</a>, <a href="metrics.csv">metrics.csv</a></p>')
     page.add("</body></html>")
     with open(path, "w") as f:
