@@ -54,12 +54,22 @@ def check_leaf(leaf) -> str:
     return leaf
 
 
+CONSTANT_ROW_LEVELS = 3
+"""Levels whose z midpoints are picked from host-computed rows (see below)."""
+
+
 class SHCellWeights:
     """Weight provider: integrals of an SH expansion over the four children.
 
     State carried down the tree: the antiderivative row at the cell's lower z
     bound, the z-contraction A[m] of the whole cell and cos/sin of the cell's
     phi centre.
+
+    At level k the z midpoints are one of 2^k dyadic values, the same for
+    every lane, so on the top :data:`CONSTANT_ROW_LEVELS` levels the
+    antiderivative row is selected among rows computed once on the host in
+    float64 (at most 3 selects per entry) instead of running the Legendre
+    recurrences per lane: the bulk of a level's cost otherwise.
     """
 
     def __init__(self, coeffs: list):
@@ -76,8 +86,22 @@ class SHCellWeights:
         return {"f_lo": self._root_lo, "a_cell": self._root_cell,
                 "cos_c": mi.Float(-1.0), "sin_c": mi.Float(0.0)}
 
+    def _midpoint_row(self, cell) -> dict:
+        """Antiderivative row at the z midpoint of every lane's cell."""
+        if cell.level >= CONSTANT_ROW_LEVELS:
+            return legendre_antiderivatives(cell.zm, self.order)
+        cells = 2 ** cell.level
+        rows = [legendre_antiderivatives(-1.0 + (2 * j + 1) / cells, self.order) for j in range(cells)]
+        out = {}
+        for key in rows[0]:
+            value = mi.Float(float(rows[0][key]))
+            for j in range(1, cells):
+                value = dr.select(cell.iz == j, float(rows[j][key]), value)
+            out[key] = value
+        return out
+
     def children(self, state, cell):
-        f_mid = legendre_antiderivatives(cell.zm, self.order)
+        f_mid = self._midpoint_row(cell)
         z_lo = {k: f_mid[k] - state["f_lo"][k] for k in f_mid}
         a_lo = contract_z(self.coeffs, z_lo, self.order)
         a_hi = [ac - al for ac, al in zip(state["a_cell"], a_lo)]
