@@ -39,7 +39,8 @@ class ProductEnvironment:
 
     Attributes: ``emitter`` (the envmap or None), ``active`` (bool: product
     sampling runs for this scene), ``reason`` (why not, when inactive),
-    ``pyramid``, ``lobes``, ``warp``.
+    ``pyramid``, ``lobes``, ``warp``, ``needs_emitter_sampling`` (bool:
+    Mitsuba's emitter sampling has work to do besides the environment).
     """
 
     def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None,
@@ -48,6 +49,8 @@ class ProductEnvironment:
         self.emitter = scene.environment()
         self.pyramid = self.lobes = self.warp = None
         self.active = False
+        self.needs_emitter_sampling = True
+        other_emitters = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
         if self.emitter is None:
             self.reason = "the scene has no environment emitter"
             return
@@ -67,6 +70,9 @@ class ProductEnvironment:
         self.warp = ProductWarp(self.pyramid, sh_depth=sh_depth)
         self.active = True
         self.reason = ""
+        # Mitsuba's emitter sampling is only traced when some lane can use it:
+        # other emitters, or smooth BSDFs without a product lobe.
+        self.needs_emitter_sampling = bool(other_emitters) or self.lobes.has_unsupported_lobes
 
     def lobe(self, si: mi.SurfaceInteraction3f, active: mi.Bool):
         """(coeffs, use_product) of the lobe proxy at ``si`` in the grid frame."""

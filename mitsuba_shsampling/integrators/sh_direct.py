@@ -147,7 +147,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 L += dr.select(act, bsdf_val * Le * (weight / pdf_p), 0.0)
 
         # ------------- Mitsuba emitter sampling (other emitters, fallback) -------------
-        for _ in range(n_e):
+        for _ in range(n_e if env.needs_emitter_sampling else 0):
             ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
             act = smooth & (ds.pdf != 0)
             if env.active:

@@ -94,13 +94,14 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             Le = env.emitter.eval(environment_ray_target(d), act)
             L += dr.select(act, bsdf_val * Le * (mis_weight(pdf_p, bsdf_pdf) / pdf_p), 0.0)
 
-        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
-        act = smooth & (ds.pdf != 0)
-        if env.active:
-            act &= ~(use_product & env.is_environment(ds.emitter))
-        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
-        weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
-        L += dr.select(act, bsdf_val * em_weight * weight, 0.0)
+        if env.needs_emitter_sampling:
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
+            act = smooth & (ds.pdf != 0)
+            if env.active:
+                act &= ~(use_product & env.is_environment(ds.emitter))
+            bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
+            weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+            L += dr.select(act, bsdf_val * em_weight * weight, 0.0)
         return L, coeffs, use_product
 
     @dr.syntax

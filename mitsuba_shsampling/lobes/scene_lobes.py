@@ -139,6 +139,9 @@ class SceneLobes:
         rows = [np.zeros((2, view_nodes, 3))]
         row_of_id: dict[int, int] = {}
         needed_bands = 0
+        #: Some smooth BSDF has no product lobe (anisotropic, transmissive):
+        #: its lanes need Mitsuba's own environment sampling.
+        self.has_unsupported_lobes = False
         for shape in scene.shapes():
             bsdf = shape.bsdf()
             if bsdf is None:
@@ -148,6 +151,7 @@ class SceneLobes:
                 continue
             support = lobe_support(bsdf)
             if support == "unsupported":
+                self.has_unsupported_lobes = True
                 warnings.warn(
                     f"SceneLobes: BSDF '{bsdf.id()}' ({type(bsdf).__name__}, flags "
                     f"{int(bsdf.flags()):#x}) is anisotropic or transmissive; its surfaces "
