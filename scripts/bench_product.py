@@ -15,7 +15,8 @@ generated 512x1024 sun-and-sky map. Throughput lanes carry one Phong lobe
 each (random axis, exponent s = n^2 / 5 for n bands, i.e. s = 20 at 10
 bands), coefficients evaluated beforehand (as an integrator would hold
 them); times are the median of warm runs (kernel compilation excluded and
-reported separately). With ``--sh-depths`` every listed sh_depth is measured
+reported separately), and the operation count of the traced kernels is
+reported as a load-independent cost. With ``--sh-depths`` every listed sh_depth is measured
 (the trade-off table); otherwise the default of each band count.
 
 Memory per shading point: the n^2 float32 coefficients are the only
@@ -78,6 +79,17 @@ def timed(run, repeats: int) -> tuple[float, float]:
     return first, statistics.median(times)
 
 
+def kernel_ops(run) -> int:
+    """Operations in the kernels that ``run`` launches: a cost per sample that,
+    unlike wall time, does not depend on the load of a shared machine."""
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()  # clear
+    run()
+    ops = sum(k.get("operation_count", 0) for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT)
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return int(ops)
+
+
 def load_maps(args) -> list[tuple[str, mi.Emitter]]:
     if args.envmap:
         files = [args.envmap]
@@ -133,6 +145,7 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
             compile_s, sample_s = timed(sample_run, args.repeats)
             _, pdf_s = timed(pdf_run, args.repeats)
             _, mitsuba_after = timed(mitsuba_run, args.repeats)
+            sample_ops, mitsuba_ops = kernel_ops(sample_run), kernel_ops(mitsuba_run)
             mitsuba_s = 0.5 * (mitsuba_before + mitsuba_after)
             figures = [product_fidelity(warp, lobe) for lobe in fidelity_lobes]
             mean = {key: float(np.mean([f[key] for f in figures])) for key in figures[0]}
@@ -145,6 +158,8 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
                 mitsuba_envmap_msamples_per_s=lanes / mitsuba_s / 1e6,
                 ratio_to_mitsuba=mitsuba_s / sample_s,
                 first_call_s=compile_s,
+                sample_kernel_ops=sample_ops,
+                mitsuba_kernel_ops=mitsuba_ops,
                 product_fidelity=mean["mean_relative_error"],
                 relative_variance=mean["relative_variance"],
                 missed_mass=mean["missed_mass"],
@@ -158,13 +173,13 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
 
 
 HEADER = (f"{'envmap':<28} {'bands':>5} {'shd':>3} {'M/s':>6} {'pdf M/s':>7} {'Mi M/s':>6} "
-          f"{'ratio':>5} {'1st s':>5} {'fidelity':>8} {'rel.var':>7} {'missed':>7} {'wasted':>7} {'B/pt':>5}")
+          f"{'ratio':>5} {'ops':>6} {'Mi ops':>6} {'1st s':>5} {'fidelity':>8} {'rel.var':>7} {'missed':>7} {'wasted':>7} {'B/pt':>5}")
 
 
 def format_row(r: dict) -> str:
     return (f"{r['envmap']:<28} {r['bands']:>5} {r['sh_depth']:>3} {r['msamples_per_s']:>6.2f} "
             f"{r['pdf_msamples_per_s']:>7.2f} {r['mitsuba_envmap_msamples_per_s']:>6.2f} "
-            f"{r['ratio_to_mitsuba']:>5.2f} {r['first_call_s']:>5.1f} {r['product_fidelity']:>8.4f} "
+            f"{r['ratio_to_mitsuba']:>5.2f} {r['sample_kernel_ops']:>6} {r['mitsuba_kernel_ops']:>6} {r['first_call_s']:>5.1f} {r['product_fidelity']:>8.4f} "
             f"{r['relative_variance']:>7.3f} {r['missed_mass']:>7.4f} {r['wasted_mass']:>7.4f} "
             f"{r['coefficient_bytes_per_point']:>5}")
 

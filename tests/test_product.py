@@ -93,7 +93,7 @@ def uniform_samples(count: int, seed: int = 7) -> mi.Point2f:
 
 #: Pyramid depth of the chi2 tests: 2^7 x 2^7 leaves, one chi2 bin per
 #: half leaf (see :func:`run_chi2`); deep enough that the default sh_depth
-#: (4 for 3 bands, 6 for 10-12 bands) leaves bilinear-lobe levels below it.
+#: leaves environment-only levels below it.
 CHI2_DEPTH = 7
 
 

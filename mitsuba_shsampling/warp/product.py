@@ -10,12 +10,25 @@ Node weights (the four children of the current cell):
 * levels ``< sh_depth``: analytic SH cell integral (clamped at 0) times the
   environment cell integral (both exact; their product estimates the integral
   of the product, exactly only at the leaves);
-* levels ``>= sh_depth``: the lobe hardly varies across such small cells
-  (a band-n lobe varies on the scale of ~pi/n), so the SH factor becomes a
-  bilinear interpolation of the lobe's values at the corners of the
-  ``sh_depth`` cell (computed once), and only the environment is gathered
-  per level. The SH work is then paid for the top levels only while the
-  environment's full resolution is still reached.
+* levels ``>= sh_depth``: the environment cell integrals alone, i.e. the lobe
+  is taken as constant inside the chosen ``sh_depth`` cell. A band-n lobe
+  varies on the scale of ~pi/n, so the SH work is paid for the top levels
+  only while the environment's full resolution is still reached by one
+  gather per level.
+
+Measured (``scripts/bench_product.py --sh-depths``, immenstadter_horn 1k, four
+Phong lobes s = n^2/5): a bilinear lobe estimate below ``sh_depth`` (from the
+lobe's values at the corners of the ``sh_depth`` cell) cost about 1.2k
+kernel operations per sample at 10 bands, more than one further SH level
+(~0.8k), and gained less: at every sh_depth the environment-only levels gave
+the same or lower relative variance per operation. See
+:func:`default_sh_depth` for the choice of the default.
+
+Memory per shading point: the n^2 float32 coefficients (400 B at 10 bands,
+1.6 kB at 20) are the only per-point data; the walk keeps about
+n(n+1)/2 + 2n further floats in registers while it runs. The pyramid is
+shared by all points (its size: :attr:`EnvPyramid.nbytes`, at most ~22 MB at
+its default depth cap).
 
 Whatever the weights, the pdf is the product of the branch probabilities
 (see :mod:`.hierarchy`), so sampling is unbiased under MIS.
@@ -28,7 +41,7 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from ..sh.basis import bands_of, sh_eval_sum_on_circle
+from ..sh.basis import bands_of
 from .hierarchy import check_depth, grid_coordinates, grid_direction, walk_pdf, walk_sample
 from .hsw import SHCellWeights, _as_floats
 
@@ -41,8 +54,7 @@ LEAF_EDGE_MARGIN = 2.0**-10
 def check_sh_depth(sh_depth) -> int:
     """Validate ``sh_depth``: at least 1, so that the root split uses the
     lobe's exact cell integrals. They decide whether the lobe has positive
-    mass at all (pdf 0 otherwise); a bilinear estimate from the root's
-    corners (the two poles) could not."""
+    mass at all (pdf 0 otherwise); the environment alone could not."""
     check_depth(sh_depth)
     if sh_depth < 1:
         raise ValueError(f"sh_depth must be >= 1, got {sh_depth}")
@@ -56,7 +68,14 @@ def default_sh_depth(n_bands: int) -> int:
 
 
 class ProductWeights:
-    """Weight provider for :func:`walk_sample`/:func:`walk_pdf`."""
+    """Weight provider for :func:`walk_sample` / :func:`walk_pdf`.
+
+    Levels ``< sh_depth``: max(SH cell integral, 0) x environment cell
+    integral; deeper levels: the environment cell integrals alone (the lobe
+    is taken as constant inside the chosen ``sh_depth`` cell). State carried
+    down the tree: that of :class:`SHCellWeights` for the SH levels, nothing
+    below.
+    """
 
     def __init__(self, coeffs: list, pyramid, sh_depth: int):
         self.sh = SHCellWeights(coeffs)
@@ -68,49 +87,28 @@ class ProductWeights:
 
     def children(self, state, cell):
         env = self.pyramid.children(cell.level, cell.iz, cell.iphi)
-        weights = self._product_weights(state, cell, env)
+        if cell.level >= self.sh_depth:
+            # The environment children of a cell chosen with positive
+            # probability are never all 0: no fallback needed.
+            return tuple(env)
+        lobe = self.sh.children(state, cell)
+        weights = tuple(dr.maximum(w, 0.0) * e for w, e in zip(lobe, env))
         if cell.level == 0:
+            # All four at 0: the lobe has no positive mass where the map is
+            # lit (or is not finite); the walk then marks the lane invalid.
             return weights
         # Product weights are not additive: a child chosen with positive
         # probability can have all four of its own product weights at 0 (lobe
         # clamped where the light is). Fall back to the environment there so
-        # no probability is lost; env children of a lit cell are never all 0.
+        # no probability is lost.
         total = (weights[0] + weights[1]) + (weights[2] + weights[3])
         keep = total > 0
         return tuple(dr.select(keep, w, e) for w, e in zip(weights, env))
 
-    def _product_weights(self, state, cell, env):
-        if cell.level < self.sh_depth:
-            lobe = self.sh.children(state, cell)
-            return tuple(dr.maximum(w, 0.0) * e for w, e in zip(lobe, env))
-        if cell.level == self.sh_depth:
-            # Lobe values at the corners of this cell (clamped at 0), reused
-            # by all deeper levels: (z0, phi0), (z0, phi1), (z1, phi0), (z1, phi1).
-            lo = sh_eval_sum_on_circle(self.sh.coeffs, cell.z0, [cell.phi0, cell.phi1])
-            hi = sh_eval_sum_on_circle(self.sh.coeffs, cell.z1, [cell.phi0, cell.phi1])
-            state["corners"] = [dr.maximum(v, 0.0) for v in lo + hi]
-        c00, c01, c10, c11 = state["corners"]
-        # Position of the child centres inside the sh_depth cell, from the
-        # cell's index relative to that cell: 2^(level - sh_depth) cells per
-        # side, so the scale is a literal and no division is traced.
-        below = cell.level - self.sh_depth
-        step = 1.0 / 2 ** (below + 1)  # child width in units of the sh_depth cell
-        mask = (1 << below) - 1
-        base_z = mi.Float(cell.iz & mask) * (2.0 * step)
-        base_phi = mi.Float(cell.iphi & mask) * (2.0 * step)
-        weights = []
-        for a in (0, 1):
-            tz = base_z + (a + 0.5) * step
-            left, right = dr.lerp(c00, c10, tz), dr.lerp(c01, c11, tz)
-            for b in (0, 1):
-                lobe = dr.lerp(left, right, base_phi + (b + 0.5) * step)
-                weights.append(lobe * env[2 * a + b])
-        return tuple(weights)
-
     def advance(self, state, cell, a, b):
         if cell.level < self.sh_depth - 1:
             return self.sh.advance(state, cell, a, b)
-        return state  # below the SH levels only the corner values are carried
+        return state  # below the SH levels nothing is carried
 
 
 class ProductWarp:
@@ -122,7 +120,8 @@ class ProductWarp:
 
     Parameter ``sh_depth`` (int or None):
         Levels with analytic SH cell integrals (default: from the band count,
-        :func:`default_sh_depth`); deeper levels use a bilinear lobe estimate.
+        :func:`default_sh_depth`), at least 1; deeper levels follow the
+        environment alone. Capped at the pyramid's depth.
 
     ``sample(coeffs, u)`` returns (world direction, solid-angle pdf);
     ``pdf(coeffs, d)`` evaluates the density for world directions. ``coeffs``
