@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare = sub.add_parser("compare", parents=[common],
                              help="render every method at equal samples and equal time, write a report")
     compare.add_argument("scenes", nargs="*", metavar="SCENE.xml",
-                         help="scene files (default: the built-in spheres scene)")
+                         help="scene files (default: the built-in sphere_ggx010 scene)")
     compare.add_argument("--out", default="report", help="report folder (default %(default)s)")
     compare.add_argument("--spp", type=_positive, default=16, help="samples per pixel at 2 rays each (default %(default)s)")
     compare.add_argument("--passes", type=int, default=4, help="independent passes per method, >= 2 (default %(default)s)")

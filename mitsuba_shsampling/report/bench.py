@@ -1,12 +1,14 @@
 """The ``bench`` command: run the ``scripts/bench_*.py`` benchmarks and an error-versus-time sweep.
 
 Contract with the benchmark scripts: each runs as
-``python3 scripts/bench_<name>.py [--quick]`` with its working directory set
-to ``<out>/bench_<name>/`` and the environment variable
-``SHSAMPLING_BENCH_OUT`` naming that folder. JSON files it writes there, or
-new/updated ``*.json`` in the repository's root, ``scripts/`` or ``bench/``
-folders during its run, are collected into that folder; stdout/stderr are
-saved as ``stdout.txt``/``stderr.txt``.
+``python3 scripts/bench_<name>.py [--quick] [--json <out>/bench_<name>/bench_<name>.json]``
+(each option only if the script's ``--help`` lists it) with its working
+directory set to ``<out>/bench_<name>/`` (so default relative output paths
+land there) and the environment variable ``SHSAMPLING_BENCH_OUT`` naming that
+folder. JSON files it writes there, or new/updated ``*.json`` in the
+repository's root, ``scripts/`` or ``bench/`` folders during its run, are
+collected into that folder; stdout/stderr are saved as
+``stdout.txt``/``stderr.txt``.
 """
 
 from __future__ import annotations
@@ -45,18 +47,34 @@ def _json_snapshot() -> dict[str, float]:
     return found
 
 
+def _script_options(script: str, env: dict) -> str:
+    """The ``--help`` text of a script (empty if it has none)."""
+    try:
+        proc = subprocess.run([sys.executable, script, "--help"], env=env, capture_output=True,
+                              text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        return ""
+    return proc.stdout if proc.returncode == 0 else ""
+
+
 def run_script(script: str, out: str, quick: bool, timeout_s: float = 3600) -> dict:
     """Run one benchmark script; returns its status and the JSON files collected."""
     name = os.path.splitext(os.path.basename(script))[0]
-    folder = os.path.join(out, name)
+    folder = os.path.abspath(os.path.join(out, name))
     os.makedirs(folder, exist_ok=True)
     before = _json_snapshot()
-    env = dict(os.environ, SHSAMPLING_BENCH_OUT=os.path.abspath(folder))
+    env = dict(os.environ, SHSAMPLING_BENCH_OUT=folder)
     env["PYTHONPATH"] = REPO_ROOT + os.pathsep + env.get("PYTHONPATH", "")
+    options = _script_options(script, env)
+    argv = [sys.executable, script]
+    if quick and "--quick" in options:
+        argv.append("--quick")
+    if "--json" in options:
+        argv += ["--json", os.path.join(folder, name + ".json")]
     start = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, script] + (["--quick"] if quick else []), cwd=folder,
-                              env=env, capture_output=True, text=True, timeout=timeout_s)
+        proc = subprocess.run(argv, cwd=folder, env=env, capture_output=True, text=True,
+                              timeout=timeout_s)
         returncode, stdout, stderr = proc.returncode, proc.stdout, proc.stderr
     except subprocess.TimeoutExpired as err:
         returncode, stdout, stderr = None, err.stdout or "", f"timed out after {timeout_s} s"
@@ -75,7 +93,7 @@ def run_script(script: str, out: str, quick: bool, timeout_s: float = 3600) -> d
                 collected[os.path.basename(path)] = json.load(f)
         except (OSError, json.JSONDecodeError) as err:
             collected[os.path.basename(path)] = {"error": f"unreadable JSON: {err}"}
-    return {"script": os.path.relpath(script, REPO_ROOT), "returncode": returncode,
+    return {"script": os.path.relpath(script, REPO_ROOT), "argv": argv[1:], "returncode": returncode,
             "time_s": elapsed, "results": collected}
 
 
