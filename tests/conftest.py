@@ -1,0 +1,40 @@
+"""Shared pytest fixtures: the Mitsuba variant, the real envmaps, a seeded RNG."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# Import the package first: it points Dr.Jit at a libLLVM >= 16 before drjit
+# loads one itself (see mitsuba_shsampling/_backend.py).
+import mitsuba_shsampling  # noqa: F401
+import mitsuba as mi
+
+VARIANT = "llvm_ad_rgb"
+mi.set_variant(VARIANT)
+
+ENVMAPS_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "envmaps"
+"""Real CC0 HDR maps (``<repo>/../shared/envmaps``); absent on some machines."""
+
+
+@pytest.fixture(scope="session")
+def variant() -> str:
+    """The Mitsuba variant every test runs on (set once, at collection)."""
+    mi.set_variant(VARIANT)
+    return VARIANT
+
+
+@pytest.fixture(scope="session")
+def envmaps_dir() -> Path:
+    """Folder of the real envmaps; skips the test when it is absent or empty."""
+    if not ENVMAPS_DIR.is_dir() or not any(ENVMAPS_DIR.glob("*.hdr")):
+        pytest.skip(f"real envmaps not available at {ENVMAPS_DIR}")
+    return ENVMAPS_DIR
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A numpy generator with a fixed seed, fresh for every test."""
+    return np.random.default_rng(20090401)
