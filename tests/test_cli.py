@@ -188,6 +188,16 @@ def test_bias_check_passes_unbiased_passes_and_flags_an_offset():
     assert not biased["bias_ok"] and biased["mean_z"] > 4
 
 
+def test_bias_check_flags_pixels_of_a_local_offset_beyond_their_expected_fraction():
+    rng = np.random.default_rng(1)
+    ref = np.full((32, 32, 3), 1.0)
+    passes = ref[None] + rng.normal(0, 0.1, size=(4, 32, 32, 3))
+    assert not metrics.bias_check(passes, ref, np.zeros_like(ref))["pixels_suspect"]
+    passes[:, :8] += 1.0  # a quarter of the image is far off
+    local = metrics.bias_check(passes, ref, np.zeros_like(ref))
+    assert local["pixels_suspect"] and local["fail_fraction"] > 0.2
+
+
 def test_student_t_tail_matches_the_cauchy_closed_form():
     assert metrics.student_t_tail(4.0, 1) == pytest.approx(1 - 2 / np.pi * np.arctan(4.0), rel=1e-6)
 

@@ -98,6 +98,7 @@ def pass_metrics(passes: PassSet, reference: Reference) -> dict:
         "bias_fail_fraction": bias["fail_fraction"],
         "bias_mean_z": bias["mean_z"],
         "bias_expected_fail_fraction": bias["expected_fail_fraction"],
+        "bias_pixels_suspect": bias["pixels_suspect"],
         "seeds": passes.seeds,
     }
 
