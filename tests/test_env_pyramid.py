@@ -21,6 +21,7 @@ import pytest
 mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.envmap import DEFAULT_MAX_DEPTH, EnvPyramid, auto_depth  # noqa: E402
+from mitsuba_shsampling.envmap.pyramid import SUBTEXEL_LEVELS  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import (  # noqa: E402
     constant_latlong, envmap_emitter, sun_sky_latlong)
 
@@ -312,10 +313,11 @@ def test_from_latlong_equals_pyramid_of_the_emitter():
     assert a.depth == b.depth and a.total == pytest.approx(b.total, rel=1e-6)
 
 
-def test_depth_follows_resolution_and_is_capped():
-    assert auto_depth(512, 1024) == 10
-    assert auto_depth(4096, 8192) == DEFAULT_MAX_DEPTH == 11
-    assert auto_depth(1, 1) == 1
+def test_depth_resolves_the_texels_plus_subtexel_levels_and_is_capped():
+    assert auto_depth(256, 512) == 9 + SUBTEXEL_LEVELS
+    assert auto_depth(512, 1024) == min(10 + SUBTEXEL_LEVELS, DEFAULT_MAX_DEPTH)
+    assert auto_depth(4096, 8192) == DEFAULT_MAX_DEPTH == 12
+    assert auto_depth(1, 1) == 1 + SUBTEXEL_LEVELS
     assert auto_depth(32, 64, max_depth=4) == 4
     pyramid = EnvPyramid(envmap_emitter(random_latlong(32, 64)), max_depth=3)
     assert pyramid.depth == 3
