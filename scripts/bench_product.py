@@ -164,6 +164,7 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
                 relative_variance=mean["relative_variance"],
                 missed_mass=mean["missed_mass"],
                 wasted_mass=mean["wasted_mass"],
+                tail_mass=mean["tail_mass"],
                 fidelity_lobes=len(figures),
                 coefficient_bytes_per_point=4 * n_bands * n_bands,
                 walk_register_bytes_per_point=4 * (n_bands * (n_bands + 1) // 2 + 2 * n_bands + 16),
@@ -173,14 +174,14 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
 
 
 HEADER = (f"{'envmap':<28} {'bands':>5} {'shd':>3} {'M/s':>6} {'pdf M/s':>7} {'Mi M/s':>6} "
-          f"{'ratio':>5} {'ops':>6} {'Mi ops':>6} {'1st s':>5} {'fidelity':>8} {'rel.var':>7} {'missed':>7} {'wasted':>7} {'B/pt':>5}")
+          f"{'ratio':>5} {'ops':>6} {'Mi ops':>6} {'1st s':>5} {'fidelity':>8} {'rel.var':>7} {'missed':>7} {'wasted':>7} {'tail':>6} {'B/pt':>5}")
 
 
 def format_row(r: dict) -> str:
     return (f"{r['envmap']:<28} {r['bands']:>5} {r['sh_depth']:>3} {r['msamples_per_s']:>6.2f} "
             f"{r['pdf_msamples_per_s']:>7.2f} {r['mitsuba_envmap_msamples_per_s']:>6.2f} "
             f"{r['ratio_to_mitsuba']:>5.2f} {r['sample_kernel_ops']:>6} {r['mitsuba_kernel_ops']:>6} {r['first_call_s']:>5.1f} {r['product_fidelity']:>8.4f} "
-            f"{r['relative_variance']:>7.3f} {r['missed_mass']:>7.4f} {r['wasted_mass']:>7.4f} "
+            f"{r['relative_variance']:>7.3f} {r['missed_mass']:>7.4f} {r['wasted_mass']:>7.4f} {r['tail_mass']:>6.3f} "
             f"{r['coefficient_bytes_per_point']:>5}")
 
 
