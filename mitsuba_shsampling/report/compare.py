@@ -27,6 +27,7 @@ import mitsuba as mi
 from .. import scenes as builtin
 from . import html, images, metrics
 from .methods import BASELINE, DIRECT, MULTI_BOUNCE, MULTI_BOUNCE_BASELINE, Method, available_methods
+from .figures import sampler_demo_figures
 from .plots import convergence_figure
 from .rendering import (SEED_CONVERGENCE, SEED_EQUAL_TIME, MethodRenderer, PassSet, Reference,
                         REFERENCE_CHUNKS, admissible_spp, render_reference, write_exr)
@@ -179,8 +180,23 @@ class SceneComparison:
                                    "integrator": "path, max_depth "
                                    + ("2" if family == DIRECT else str(self.settings.max_depth))}
         runs = [self.run_sampler(sampler, methods, refs, exposure) for sampler in self.settings.samplers]
+        figures = self.sampler_figures() if any(m.product_sampling for m in methods) else []
         return {"scene": self.name, "path": self.path, "has_envmap": self.has_envmap,
-                "notes": self.notes, "exposure": exposure, "references": ref_entries, "runs": runs}
+                "notes": self.notes, "exposure": exposure, "references": ref_entries, "runs": runs,
+                "sampler_figures": figures}
+
+    def sampler_figures(self) -> list[dict]:
+        """Warped sample points over their targets (SH lobe; lobe x this scene's map)."""
+        if not self.has_envmap:
+            return []
+        probe = builtin.load_scene(self.path, **({"envmap": self.settings.envmap} if self.settings.envmap else {}))
+        out = []
+        for i, (caption, png) in enumerate(sampler_demo_figures(builtin.scene_envmap(probe))):
+            path = os.path.join(self.folder, f"sampler_points_{i}.png")
+            with open(path, "wb") as f:
+                f.write(png)
+            out.append({"caption": caption, "png": self.rel(path)})
+        return out
 
     @staticmethod
     def exposure(reference: np.ndarray) -> float:

@@ -100,6 +100,14 @@ def write_html(path: str, report: dict) -> None:
                                   f"mean variance {r['mean_variance']:.3g})", r["file"])
                        for r in scene["references"].values())
         page.add(f'<div class="row">{refs}</div>')
+        if scene.get("sampler_figures"):
+            page.add("<h3>Warped sample points</h3><p>Hierarchical warping of an 8-band Phong lobe "
+                     "(s = 20) alone and times this scene's environment, on the equal-area (phi, z) "
+                     "grid (square-root colour scale). From a Hammersley set the warped points stay "
+                     "stratified: the warp preserves the input's low discrepancy.</p>")
+            for fig in scene["sampler_figures"]:
+                with open(os.path.join(page.root, fig["png"]), "rb") as f:
+                    page.add(f'<img src="{data_uri(f.read())}" alt="{_e(fig["caption"])}">')
         for run in scene["runs"]:
             page.add(f"<h3>{_e(scene['scene'])}: {_e(run['sampler'])} sampler</h3>")
             page.add(_metrics_table(run))

@@ -122,6 +122,10 @@ class MethodRenderer:
         if spp not in self.warm_spps:
             # Samplers other than `independent` recompile for a new sample count.
             self.warm_up(spp)
+        else:
+            # Other methods rendered since this one last ran: one untimed pass
+            # first, so that no leftover compilation or cache refill is timed.
+            self.render(spp, SEED_WARMUP)
         images, times = [], []
         for k in range(count):
             image, elapsed = self.render(spp, seed0 + k)
