@@ -49,6 +49,8 @@ from mitsuba_shsampling.warp.product import (  # noqa: E402
 
 SHARED_ENVMAPS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "envmaps")
 #: Lobe axes (grid frame) of the fidelity figures: zenith, horizon, nadir-ish, oblique.
+#: Deepest pyramid on which the fidelity figures are computed (4^10 leaves).
+FIDELITY_DEPTH = 10
 FIDELITY_AXES = [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.3, -0.5, -0.8), (-0.6, 0.6, 0.5)]
 
 
@@ -103,6 +105,12 @@ def load_maps(args) -> list[tuple[str, mi.Emitter]]:
 
 def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
     pyramid = EnvPyramid(emitter)
+    # Fidelity needs the pdf of every leaf: 4^12 = 17M at the default depth of
+    # a 1k map. A pyramid capped at FIDELITY_DEPTH makes the same decisions in
+    # the levels where the product's fidelity is lost (the coarse ones) and
+    # keeps the figure affordable; its depth is recorded.
+    fidelity_pyramid = (pyramid if pyramid.depth <= FIDELITY_DEPTH
+                        else EnvPyramid(emitter, max_depth=FIDELITY_DEPTH))
     lanes = args.lanes
     rng = np.random.default_rng(0)
     sampler = mi.PCG32(lanes)
@@ -147,7 +155,8 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
             _, mitsuba_after = timed(mitsuba_run, args.repeats)
             sample_ops, mitsuba_ops = kernel_ops(sample_run), kernel_ops(mitsuba_run)
             mitsuba_s = 0.5 * (mitsuba_before + mitsuba_after)
-            figures = [product_fidelity(warp, lobe) for lobe in fidelity_lobes]
+            fidelity_warp = ProductWarp(fidelity_pyramid, sh_depth=sh_depth)
+            figures = [product_fidelity(fidelity_warp, lobe) for lobe in fidelity_lobes]
             mean = {key: float(np.mean([f[key] for f in figures])) for key in figures[0]}
             rows.append(dict(
                 envmap=name, bands=n_bands, coefficients=n_bands * n_bands, phong_exponent=s,
@@ -166,6 +175,7 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
                 wasted_mass=mean["wasted_mass"],
                 tail_mass=mean["tail_mass"],
                 fidelity_lobes=len(figures),
+                fidelity_depth=fidelity_warp.depth,
                 coefficient_bytes_per_point=4 * n_bands * n_bands,
                 walk_register_bytes_per_point=4 * (n_bands * (n_bands + 1) // 2 + 2 * n_bands + 16),
                 pyramid_bytes=pyramid.nbytes))
@@ -173,12 +183,12 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
     return rows
 
 
-HEADER = (f"{'envmap':<28} {'bands':>5} {'shd':>3} {'M/s':>6} {'pdf M/s':>7} {'Mi M/s':>6} "
+HEADER = (f"{'envmap':<28} {'bands':>5} {'D':>2} {'shd':>3} {'M/s':>6} {'pdf M/s':>7} {'Mi M/s':>6} "
           f"{'ratio':>5} {'ops':>6} {'Mi ops':>6} {'1st s':>5} {'fidelity':>8} {'rel.var':>7} {'missed':>7} {'wasted':>7} {'tail':>6} {'B/pt':>5}")
 
 
 def format_row(r: dict) -> str:
-    return (f"{r['envmap']:<28} {r['bands']:>5} {r['sh_depth']:>3} {r['msamples_per_s']:>6.2f} "
+    return (f"{r['envmap']:<28} {r['bands']:>5} {r['depth']:>2} {r['sh_depth']:>3} {r['msamples_per_s']:>6.2f} "
             f"{r['pdf_msamples_per_s']:>7.2f} {r['mitsuba_envmap_msamples_per_s']:>6.2f} "
             f"{r['ratio_to_mitsuba']:>5.2f} {r['sample_kernel_ops']:>6} {r['mitsuba_kernel_ops']:>6} {r['first_call_s']:>5.1f} {r['product_fidelity']:>8.4f} "
             f"{r['relative_variance']:>7.3f} {r['missed_mass']:>7.4f} {r['wasted_mass']:>7.4f} {r['tail_mass']:>6.3f} "

@@ -266,6 +266,24 @@ def test_tiny_and_odd_sized_maps_sample_consistently(shape):
     assert leaf_probability_sum(warp, single) == pytest.approx(1.0, abs=2e-5)
 
 
+def test_large_map_is_sampled_at_the_pyramids_capped_depth():
+    """A 2048 x 4096 map: the pyramid stops at its depth cap (<= 12, the
+    deepest tree float32 samples can drive; 89 MB shared by all shading
+    points), the warp follows it; per shading point only the n^2
+    coefficients are stored."""
+    image = sun_sky_latlong(2048, 4096)
+    pyramid = EnvPyramid.from_latlong(image, to_world=TILTED)
+    del image
+    warp = ProductWarp(pyramid)
+    assert warp.depth == pyramid.depth <= 12
+    assert pyramid.nbytes <= 4 * (4 ** (pyramid.depth + 1) + 8) // 3
+    coeffs = per_lane_lobes(3, 1 << 16, seed=4)
+    d, pdf = warp.sample(coeffs, uniform_samples(1 << 16))
+    again = warp.pdf(coeffs, d).numpy()
+    assert np.all(pdf.numpy() > 0)
+    assert np.max(np.abs(again - pdf.numpy()) / pdf.numpy()) <= 1e-4
+
+
 # ------------------------------------------------------------- parameters
 
 def test_default_sh_depth_grows_with_band_count_and_is_capped_by_the_map():

@@ -16,8 +16,8 @@ Node weights (the four children of the current cell):
   only while the environment's full resolution is still reached by one
   gather per level.
 
-Measured (``scripts/bench_product.py --sh-depths``, immenstadter_horn 1k, four
-Phong lobes s = n^2/5): a bilinear lobe estimate below ``sh_depth`` (from the
+Measured (``scripts/bench_product.py --sh-depths``, immenstadter_horn 1k at
+pyramid depth 10, four Phong lobes s = n^2/5): a bilinear lobe estimate below ``sh_depth`` (from the
 lobe's values at the corners of the ``sh_depth`` cell) cost about 1.2k
 kernel operations per sample at 10 bands, more than one further SH level
 (~0.8k), and gained less: at every sh_depth the environment-only levels gave
@@ -67,7 +67,8 @@ def default_sh_depth(n_bands: int) -> int:
 
     3 bands: 4, 5: 5, 10: 6, 15: 6, 20: 7. Chosen from the sweep of
     ``scripts/bench_product.py --sh-depths`` (four Phong lobes s = n^2/5,
-    1k maps; cost = kernel operations per sample, quality = relative variance
+    1k maps at pyramid depth 10; cost = kernel operations per sample,
+    quality = relative variance
     of the one-sample product estimate): the product of the two is lowest at
     this depth for 3, 5 and 15 bands on immenstadter_horn and for 10 bands on
     studio_small_03, and 20 % above the lowest (sh_depth 3) for 10 bands on
