@@ -278,7 +278,7 @@ def test_grid_coords_handle_poles_and_seam():
     d = mi.Vector3f([0, 0, 1, 1, 1, 0.6], [0, 0, -1e-9, 1e-9, 0, 0], [1, -1, 0, 0, 0, 0.8])
     z, phi = EnvPyramid.grid_coords(d)
     phi = phi.numpy()
-    assert np.all((phi >= 0) & (phi < 2 * np.pi))
+    assert np.all((phi >= 0) & (phi <= 2 * np.pi))
     np.testing.assert_allclose(z.numpy(), [1, -1, 0, 0, 0, 0.8])
     np.testing.assert_allclose(phi[[0, 1, 3, 4, 5]], 0, atol=1e-6)
     assert phi[2] == 0 or phi[2] > 2 * np.pi - 1e-6

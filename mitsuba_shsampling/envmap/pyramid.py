@@ -33,6 +33,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..warp.hierarchy import grid_coordinates, grid_direction
+
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
 #: buffer is 22.4 MB. Deeper levels would not help the warps anyway: rescaling
 #: a float32 sample loses about one bit per split, so ~11 levels per
@@ -357,26 +359,9 @@ class EnvPyramid:
         d = mi.Vector3f(d)
         return self.to_world @ mi.Vector3f(-d.y, d.z, -d.x)
 
-    @staticmethod
-    def grid_coords(d_grid: mi.Vector3f) -> tuple[mi.Float, mi.Float]:
-        """Unit grid-frame direction -> (z, phi), z in [-1, 1], phi in [0, 2 pi).
-
-        phi = atan2(y, x) wrapped into [0, 2 pi); at the poles (x = y = 0)
-        phi = 0, and a tiny negative angle whose wrap rounds up to 2 pi in
-        float32 maps to 0 (the same direction up to rounding).
-        """
-        z = dr.clip(d_grid.z, -1, 1)
-        phi = dr.atan2(d_grid.y, d_grid.x)
-        phi = dr.select(phi < 0, phi + _TWO_PI, phi)
-        phi = dr.select(phi >= _TWO_PI, 0, phi)
-        return z, phi
-
-    @staticmethod
-    def grid_direction(z: mi.Float, phi: mi.Float) -> mi.Vector3f:
-        """(z, phi) -> unit grid-frame direction (inverse of :meth:`grid_coords`)."""
-        sin_theta = dr.safe_sqrt(1 - z * z)
-        sin_phi, cos_phi = dr.sincos(phi)
-        return mi.Vector3f(sin_theta * cos_phi, sin_theta * sin_phi, z)
+    # The cylinder coordinates are the warps' (one definition for both).
+    grid_coords = staticmethod(grid_coordinates)
+    grid_direction = staticmethod(grid_direction)
 
     def __repr__(self) -> str:
         height, width = self.texel_resolution

@@ -8,7 +8,6 @@ points in the same coordinates as the density image, e.g. the equal-area
 
 from __future__ import annotations
 
-import io
 from typing import Callable
 
 import matplotlib
@@ -16,6 +15,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+
+from .plots import figure_png  # noqa: E402
 
 #: (x_min, x_max, y_min, y_max) of the equal-area grid: phi on x, z on y.
 EQUAL_AREA_EXTENT = (0.0, 2 * np.pi, -1.0, 1.0)
@@ -57,11 +58,7 @@ def warped_points_figure(density: np.ndarray,
     ax.set_ylabel("z")
     if title:
         ax.set_title(title)
-    fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=90)
-    plt.close(fig)
-    return buffer.getvalue()
+    return figure_png(fig)
 
 
 def hammersley(n_points: int) -> np.ndarray:

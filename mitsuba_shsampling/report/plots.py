@@ -32,6 +32,11 @@ def convergence_figure(curves: dict[str, list[dict]], title: str) -> bytes:
     if ax_spp.get_legend_handles_labels()[0]:
         ax_spp.legend(fontsize=7)
     fig.suptitle(title)
+    return figure_png(fig)
+
+
+def figure_png(fig) -> bytes:
+    """Lay out ``fig``, return it as PNG bytes and close it."""
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=90)

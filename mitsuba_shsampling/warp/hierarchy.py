@@ -62,7 +62,12 @@ def grid_direction(z, phi) -> mi.Vector3f:
 
 
 def grid_coordinates(d: mi.Vector3f):
-    """(z, phi) of a direction, phi in [0, 2 pi); normalises ``d``."""
+    """(z, phi) of a direction; normalises ``d``.
+
+    phi = atan2(y, x) wrapped into [0, 2 pi]; at the poles phi = 0. A tiny
+    negative angle whose wrap rounds up gives exactly 2 pi: it stays on the
+    seam's high side, in the last column, where a sample drawn there came from.
+    """
     d = dr.normalize(d)
     z = dr.clip(d.z, -1.0, 1.0)
     phi = dr.atan2(d.y, d.x)
