@@ -15,8 +15,12 @@ ROOT=$(pwd)
 VENV=${SHSAMPLING_VENV:-$ROOT/.venv}
 
 have_good_llvm() {
-    ls /usr/lib/*/libLLVM-1[6-9]*.so* /usr/lib/*/libLLVM-2[0-9]*.so* \
-       /usr/lib/*/libLLVM.so.1[6-9]* /usr/lib/*/libLLVM.so.2[0-9]* >/dev/null 2>&1
+    local lib
+    for lib in /usr/lib/*/libLLVM-1[6-9]*.so* /usr/lib/*/libLLVM-[2-9][0-9]*.so* \
+               /usr/lib/*/libLLVM.so.1[6-9]* /usr/lib/*/libLLVM.so.[2-9][0-9]*; do
+        [ -e "$lib" ] && return 0
+    done
+    return 1
 }
 
 as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo -n "$@"; fi; }
