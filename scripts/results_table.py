@@ -1,0 +1,70 @@
+"""Summarise `compare` reports as the README's results table (Markdown).
+
+    python scripts/results_table.py report_a/report.json report_b/report.json ...
+
+For every scene x sampler, the SH method is set against the *best* of
+Mitsuba's own strategies in the same run (lowest MSE at equal samples,
+highest efficiency = 1/(MSE x time)), and against ``direct`` 1+1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+MITSUBA_METHODS = ("direct", "direct_misc", "env_only")
+SH_METHOD = "sh_direct"
+
+
+def envmap_name(report: dict) -> str:
+    envmap = report["settings"].get("envmap")
+    return os.path.splitext(os.path.basename(envmap))[0] if envmap else "built-in sunsky"
+
+
+def rows(report: dict):
+    for scene in report["scenes"]:
+        for run in scene["runs"]:
+            methods = run["methods"]
+            if SH_METHOD not in methods:
+                continue
+            ours = methods[SH_METHOD]["equal_spp"]
+            theirs = {n: methods[n]["equal_spp"] for n in MITSUBA_METHODS if n in methods}
+            best_mse = min(theirs, key=lambda n: theirs[n]["mse"])
+            best_eff = max(theirs, key=lambda n: theirs[n]["efficiency"])
+            direct = theirs.get("direct")
+            yield {
+                "map": envmap_name(report), "scene": scene["scene"], "sampler": run["sampler"],
+                "mse_vs_direct": ours["mse"] / direct["mse"] if direct else None,
+                "mse_vs_best": ours["mse"] / theirs[best_mse]["mse"], "best_mse": best_mse,
+                "eff_vs_direct": ours["efficiency"] / direct["efficiency"] if direct else None,
+                "eff_vs_best": ours["efficiency"] / theirs[best_eff]["efficiency"], "best_eff": best_eff,
+                "time_vs_direct": ours["time_s"] / direct["time_s"] if direct else None,
+                "bias_ok": ours["bias_ok"],
+            }
+
+
+def fmt(x, digits=2):
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("reports", nargs="+")
+    parser.add_argument("--json", help="also write the rows as JSON")
+    args = parser.parse_args()
+    table = [r for path in args.reports for r in rows(json.load(open(path)))]
+    print("| map | scene | MSE / direct | MSE / best Mitsuba (which) | efficiency / direct "
+          "| efficiency / best Mitsuba (which) | time / direct | bias ok |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in table:
+        print(f"| {r['map']} | {r['scene']} | {fmt(r['mse_vs_direct'])} | {fmt(r['mse_vs_best'])} "
+              f"({r['best_mse']}) | {fmt(r['eff_vs_direct'])} | {fmt(r['eff_vs_best'])} ({r['best_eff']}) "
+              f"| {fmt(r['time_vs_direct'])} | {'yes' if r['bias_ok'] else 'NO'} |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(table, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
