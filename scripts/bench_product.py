@@ -117,7 +117,9 @@ def bench_map(name: str, emitter: mi.Emitter, args) -> list[dict]:
 
     def fresh_u() -> mi.Point2f:
         u = mi.Point2f(sampler.next_float32(), sampler.next_float32())
-        dr.eval(u)
+        # Evaluate the generator's state too, or every call would trace a
+        # longer chain of PCG steps into the next kernel.
+        dr.eval(u, sampler.state)
         return u
 
     def mitsuba_run():
