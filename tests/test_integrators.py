@@ -186,6 +186,7 @@ def test_integrators_load_from_xml_strings():
     ({"type": "sh_direct", "max_bands": 2}, "max_bands"),
     ({"type": "sh_direct", "max_bands": 40}, "max_bands"),
     ({"type": "sh_direct", "sh_depth": 20}, "sh_depth"),
+    ({"type": "sh_direct", "sh_depth": 0}, "sh_depth"),
     ({"type": "sh_direct", "emitter_samples": 0, "bsdf_samples": 0}, "not both 0"),
     ({"type": "sh_path", "max_depth": 0}, "max_depth"),
 ])

@@ -23,8 +23,8 @@ def read_sh_properties(props: mi.Properties, name: str):
     mis_compensation = props.get("mis_compensation", True)
     if not 3 <= max_bands <= 32:
         raise ValueError(f"{name}: 'max_bands' must be in [3, 32], got {max_bands}")
-    if not -1 <= sh_depth <= 12:
-        raise ValueError(f"{name}: 'sh_depth' must be in [0, 12] (or -1 for automatic), got {sh_depth}")
+    if not (sh_depth == -1 or 1 <= sh_depth <= 12):
+        raise ValueError(f"{name}: 'sh_depth' must be in [1, 12] (or -1 for automatic), got {sh_depth}")
     return max_bands, (None if sh_depth < 0 else sh_depth), mis_compensation
 
 
