@@ -316,7 +316,7 @@ def test_from_latlong_equals_pyramid_of_the_emitter():
 def test_depth_resolves_the_texels_plus_subtexel_levels_and_is_capped():
     assert auto_depth(256, 512) == 9 + SUBTEXEL_LEVELS
     assert auto_depth(512, 1024) == min(10 + SUBTEXEL_LEVELS, DEFAULT_MAX_DEPTH)
-    assert auto_depth(4096, 8192) == DEFAULT_MAX_DEPTH == 12
+    assert auto_depth(4096, 8192) == DEFAULT_MAX_DEPTH == 11
     assert auto_depth(1, 1) == 1 + SUBTEXEL_LEVELS
     assert auto_depth(32, 64, max_depth=4) == 4
     pyramid = EnvPyramid(envmap_emitter(random_latlong(32, 64)), max_depth=3)
