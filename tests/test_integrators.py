@@ -204,3 +204,22 @@ def test_unsupported_variants_are_refused_with_a_clear_error():
             check_variant()
     finally:
         mi.set_variant(current)
+
+
+def test_a_non_envmap_environment_keeps_mitsubas_sampling_with_a_warning():
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 45,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, -4.2, 1.6], target=[0, 0, 0], up=[0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"}}},
+        "sky": {"type": "sunsky", "sun_direction": [0.3, 0.4, 0.8]},
+        "s": sphere([0, 0, 0], MATERIALS["ggx"]),
+        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -0.4]).scale(4),
+                  "bsdf": {"type": "diffuse"}},
+    })
+    integrator = mi.load_dict({"type": "sh_direct"})
+    with pytest.warns(UserWarning, match="not an 'envmap'"):
+        env = integrator.scenes.get(scene)
+    assert not env.active and env.pyramid is None
+    # Mitsuba's strategies, driven from the Python plugin: unbiased like direct.
+    assert_unbiased(scene, integrator, mi.load_dict({"type": "path", "max_depth": 2}))
