@@ -42,7 +42,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..sh.basis import bands_of
-from .hierarchy import check_depth, grid_coordinates, grid_direction, walk_pdf, walk_sample
+from .hierarchy import Cell, check_depth, grid_coordinates, grid_direction, walk_pdf, walk_sample
 from .hsw import SHCellWeights, _as_floats
 
 
@@ -173,7 +173,21 @@ class ProductWarp:
     def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
         z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
-        leaf, _, prob, _ = walk_pdf(self._provider(coeffs), self.depth, z, phi)
+        provider = self._provider(coeffs)
+        cell, _, prob, _ = walk_pdf(provider, provider.sh_depth, z, phi)
+        # Below sh_depth the weights are the pyramid's own children, so the
+        # branch probabilities telescope: P(leaf | cell) = leaf / cell integral.
+        # The leaf is found by the walk's own comparisons (no gathers).
+        iz, iphi = cell.iz, cell.iphi
+        for level in range(provider.sh_depth, self.depth):
+            step = Cell(level, iz, iphi)
+            iz = 2 * iz + dr.select(z >= step.zm, 1, 0)
+            iphi = 2 * iphi + dr.select(phi >= step.phim, 1, 0)
+        leaf = Cell(self.depth, iz, iphi)
+        if provider.sh_depth < self.depth:
+            parent = self.pyramid.cell_integral(provider.sh_depth, cell.iz, cell.iphi)
+            inside = self.pyramid.cell_integral(self.depth, iz, iphi)
+            prob *= dr.select(parent > 0, inside / dr.select(parent > 0, parent, 1.0), 0.0)
         return prob / leaf.area
 
 
