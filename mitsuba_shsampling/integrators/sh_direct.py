@@ -65,8 +65,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
      * - sh_depth
        - |int|
        - Levels of the product hierarchy that use analytic SH cell integrals
-         (-1: from the band count, 2^k >= 4 n); below them the lobe is a bilinear
-         estimate from cell corners and only the environment is refined. (Default: 3)
+         (-1: from the band count, 2^k >= 4 n); below them the lobe is taken
+         as constant and only the environment is refined. (Default: 3)
      * - mis_compensation
        - |bool|
        - Product-sample against the environment minus its mean radiance

@@ -17,8 +17,8 @@ Node weights (the four children of the current cell):
   gather per level.
 
 Measured (``scripts/bench_product.py --sh-depths``, immenstadter_horn 1k at
-pyramid depth 10, four Phong lobes s = n^2/5): a bilinear lobe estimate below ``sh_depth`` (from the
-lobe's values at the corners of the ``sh_depth`` cell) cost about 1.2k
+pyramid depth 10, four Phong lobes s = n^2/5): a bilinear lobe estimate below
+``sh_depth`` (from the lobe's values at the corners of the ``sh_depth`` cell) cost about 1.2k
 kernel operations per sample at 10 bands, more than one further SH level
 (~0.8k), and gained less: at every sh_depth the environment-only levels gave
 the same or lower relative variance per operation. See
@@ -31,7 +31,9 @@ shared by all points (its size: :attr:`EnvPyramid.nbytes`, at most ~22 MB at
 its default depth cap).
 
 Whatever the weights, the pdf is the product of the branch probabilities
-(see :mod:`.hierarchy`), so sampling is unbiased under MIS.
+(see :mod:`.hierarchy`), so sampling is unbiased under MIS. Below
+``sh_depth`` those probabilities telescope to (leaf integral) / (integral of
+the ``sh_depth`` cell), which :meth:`ProductWarp.pdf` uses directly.
 """
 
 from __future__ import annotations
