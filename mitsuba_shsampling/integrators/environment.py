@@ -74,22 +74,69 @@ class ProductEnvironment:
         # other emitters, or smooth BSDFs without a product lobe.
         self.needs_emitter_sampling = bool(other_emitters) or self.lobes.has_unsupported_lobes
 
-    def lobe(self, si: mi.SurfaceInteraction3f, active: mi.Bool):
-        """(coeffs, use_product) of the lobe proxy at ``si`` in the grid frame."""
-        return self.lobes.coefficients(si, self.pyramid.grid_from_world, active)
+    # Per-lane pieces shared by the integrators. When the scene does not use
+    # product sampling they reduce to Mitsuba's own strategies and trace nothing.
 
-    def sample(self, coeffs, u: mi.Point2f, active: mi.Bool):
-        """World direction and solid-angle pdf of a product sample."""
-        d, pdf = self.warp.sample(coeffs, u)
-        return d, dr.select(active, pdf, 0.0)
+    def lobe(self, si: mi.SurfaceInteraction3f, smooth: mi.Bool):
+        """(coeffs, use_product) of the lobe proxy at ``si`` in the grid frame;
+        (None, False) where product sampling does not run."""
+        if not self.active:
+            return None, mi.Bool(False)
+        coeffs, use_product = self.lobes.coefficients(si, self.pyramid.grid_from_world, smooth)
+        return coeffs, use_product & smooth
 
     def pdf(self, coeffs, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
+        """Product-sampling pdf of world direction ``d`` (0 where inactive)."""
+        if not self.active:
+            return mi.Float(0.0)
         return dr.select(active, self.warp.pdf(coeffs, d), 0.0)
+
+    def hit_pdf(self, emitter, use_product: mi.Bool, product_pdf, emitter_pdf):
+        """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the
+        product pdf for the environment in product lanes, Mitsuba's otherwise."""
+        if not self.active:
+            return emitter_pdf
+        return dr.select(use_product & self.is_environment(emitter), product_pdf, emitter_pdf)
+
+    def product_nee(self, scene, sampler, si, bsdf, ctx, coeffs, use_product, smooth, frac_e, frac_b):
+        """One product sample of the environment (BSDF value x radiance / pdf),
+        power-heuristic weighted against BSDF sampling with the strategies'
+        sample-count fractions."""
+        if not self.active:
+            return mi.Spectrum(0.0)
+        d, pdf_p = self.warp.sample(coeffs, sampler.next_2d(smooth))
+        act = use_product & (pdf_p > 0)
+        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
+        act &= ~scene.ray_test(si.spawn_ray(d), act)
+        Le = self.emitter.eval(environment_ray_target(d), act)
+        weight = mis_weight(pdf_p * frac_e, bsdf_pdf * frac_b)
+        return dr.select(act, bsdf_val * Le * (weight / pdf_p), 0.0)
+
+    def emitter_nee(self, scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b):
+        """One sample of Mitsuba's emitter sampling, without the environment's
+        share in product lanes (that belongs to :meth:`product_nee`); not
+        traced at all when no lane can use it."""
+        if not self.needs_emitter_sampling:
+            return mi.Spectrum(0.0)
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
+        act = smooth & (ds.pdf != 0)
+        if self.active:
+            act &= ~(use_product & self.is_environment(ds.emitter))
+        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
+        weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
+        return dr.select(act, bsdf_val * em_weight * weight, 0.0)
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""
         return dr.reinterpret_array(mi.UInt32, emitter) == dr.reinterpret_array(
             mi.UInt32, mi.EmitterPtr(self.emitter))
+
+
+def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
+    """An interaction that makes ``envmap.eval`` return the radiance arriving from ``d``."""
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.wi = -d
+    return si
 
 
 def mis_weight(pdf_a, pdf_b):

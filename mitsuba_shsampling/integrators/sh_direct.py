@@ -28,13 +28,6 @@ def read_sh_properties(props: mi.Properties, name: str):
     return max_bands, (None if sh_depth < 0 else sh_depth), mis_compensation
 
 
-def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
-    """An interaction that makes ``envmap.eval`` return the radiance arriving from ``d``."""
-    si = dr.zeros(mi.SurfaceInteraction3f)
-    si.wi = -d
-    return si
-
-
 class SHDirectIntegrator(mi.SamplingIntegrator):
     r"""
     .. _integrator-sh_direct:
@@ -129,33 +122,13 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         n_e, n_b = self.emitter_samples, self.bsdf_samples
         frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
 
-        if env.active:
-            coeffs, use_product = env.lobe(si, smooth)
-            use_product &= smooth
-        else:
-            coeffs, use_product = None, mi.Bool(False)
+        coeffs, use_product = env.lobe(si, smooth)
 
-        # ------------------ Product sampling of the environment ------------------
-        if env.active:
-            for _ in range(n_e):
-                d, pdf_p = env.sample(coeffs, sampler.next_2d(smooth), use_product)
-                act = use_product & (pdf_p > 0)
-                bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
-                act &= ~scene.ray_test(si.spawn_ray(d), act)
-                Le = env.emitter.eval(environment_ray_target(d), act)
-                weight = mis_weight(pdf_p * frac_e, bsdf_pdf * frac_b) / n_e
-                L += dr.select(act, bsdf_val * Le * (weight / pdf_p), 0.0)
-
-        # ------------- Mitsuba emitter sampling (other emitters, fallback) -------------
-        for _ in range(n_e if env.needs_emitter_sampling else 0):
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
-            act = smooth & (ds.pdf != 0)
-            if env.active:
-                # The environment's share belongs to the product strategy in product lanes.
-                act &= ~(use_product & env.is_environment(ds.emitter))
-            bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
-            weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b)) / n_e
-            L += dr.select(act, bsdf_val * em_weight * weight, 0.0)
+        # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
+        for _ in range(n_e):
+            L += env.product_nee(scene, sampler, si, bsdf, ctx, coeffs, use_product, smooth, frac_e, frac_b) / n_e
+        for _ in range(n_e):
+            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b) / n_e
 
         # ---------------------------- BSDF sampling ----------------------------
         for _ in range(n_b):
@@ -168,11 +141,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             Le = emitter.eval(si_b, act)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             ds = mi.DirectionSample3f(scene, si_b, si)
-            pdf_em = scene.pdf_emitter_direction(si, ds, act & ~delta)
-            if env.active:
-                hits_env = use_product & env.is_environment(emitter)
-                pdf_prod = env.pdf(coeffs, d, act & hits_env & ~delta)
-                pdf_em = dr.select(hits_env, pdf_prod, pdf_em)
+            pdf_em = env.hit_pdf(emitter, use_product, env.pdf(coeffs, d, act & use_product & ~delta),
+                                 scene.pdf_emitter_direction(si, ds, act & ~delta))
             pdf_em = dr.select(delta | ~smooth, 0.0, pdf_em)
             weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e) / n_b
             L += dr.select(act, bsdf_weight * Le * weight, 0.0)

@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .environment import SceneCache, check_variant, mis_weight
-from .sh_direct import environment_ray_target, read_sh_properties
+from .sh_direct import read_sh_properties
 
 
 class SHPathIntegrator(mi.SamplingIntegrator):
@@ -77,33 +77,6 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         self.scenes.get(scene)  # build host-side state before tracing the pass
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
-    def _next_event(self, env, scene, sampler, si, bsdf, ctx, active):
-        """Product NEE for the environment plus Mitsuba NEE for other emitters.
-
-        Returns (radiance estimate before throughput, coeffs, use_product)."""
-        L = mi.Spectrum(0.0)
-        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        coeffs, use_product = None, mi.Bool(False)
-        if env.active:
-            coeffs, use_product = env.lobe(si, smooth)
-            use_product &= smooth
-            d, pdf_p = env.sample(coeffs, sampler.next_2d(smooth), use_product)
-            act = use_product & (pdf_p > 0)
-            bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
-            act &= ~scene.ray_test(si.spawn_ray(d), act)
-            Le = env.emitter.eval(environment_ray_target(d), act)
-            L += dr.select(act, bsdf_val * Le * (mis_weight(pdf_p, bsdf_pdf) / pdf_p), 0.0)
-
-        if env.needs_emitter_sampling:
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
-            act = smooth & (ds.pdf != 0)
-            if env.active:
-                act &= ~(use_product & env.is_environment(ds.emitter))
-            bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
-            weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
-            L += dr.select(act, bsdf_val * em_weight * weight, 0.0)
-        return L, coeffs, use_product
-
     @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
         env = self.scenes.get(scene)
@@ -130,8 +103,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
             emitter = si.emitter(scene, active)
             ds = mi.DirectionSample3f(scene, si, prev_si)
-            em_pdf = scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta)
-            em_pdf = self._environment_pdf(env, emitter, prev_product, prev_product_pdf, em_pdf)
+            em_pdf = env.hit_pdf(emitter, prev_product, prev_product_pdf,
+                                 scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta))
             em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
             visible = active & ((depth > 0) | (not self.hide_emitters))
             L += dr.select(visible, beta * mis_weight(prev_bsdf_pdf, em_pdf) * emitter.eval(si, visible), 0.0)
@@ -141,15 +114,19 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             bsdf = si.bsdf(ray)
 
             # -------------------------- Next-event estimation --------------------------
-            L_ne, coeffs, use_product = self._next_event(env, scene, sampler, si, bsdf, ctx, active_next)
-            L += beta * L_ne
+            # One sample per strategy: equal fractions (the power heuristic
+            # only sees their ratio).
+            smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            coeffs, use_product = env.lobe(si, smooth)
+            L += beta * env.product_nee(scene, sampler, si, bsdf, ctx, coeffs, use_product, smooth, 0.5, 0.5)
+            L += beta * env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, 0.5, 0.5)
 
             # ------------------------------ BSDF sampling ------------------------------
             bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_next),
                                           sampler.next_2d(active_next), active_next)
             d = si.to_world(bs.wo)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            prev_product_pdf = self._product_pdf(env, coeffs, d, use_product & ~delta & active_next)
+            prev_product_pdf = env.pdf(coeffs, d, use_product & ~delta & active_next)
             prev_product = use_product
             prev_si = mi.Interaction3f(si)
             prev_bsdf_pdf = bs.pdf
@@ -168,19 +145,6 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             depth += 1
 
         return L, valid_ray, []
-
-    @staticmethod
-    def _environment_pdf(env, emitter, prev_product, prev_product_pdf, em_pdf):
-        """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``."""
-        if not env.active:
-            return em_pdf
-        return dr.select(prev_product & env.is_environment(emitter), prev_product_pdf, em_pdf)
-
-    @staticmethod
-    def _product_pdf(env, coeffs, d, active):
-        if not env.active:
-            return mi.Float(0.0)
-        return env.pdf(coeffs, d, active)
 
     def to_string(self):
         return f"SHPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"

@@ -130,7 +130,8 @@ class SceneComparison:
         self.render_settings = {"res": settings.res, "envmap": settings.envmap,
                                 "max_depth": settings.max_depth}
         probe = builtin.load_scene(self.path, **({"envmap": settings.envmap} if settings.envmap else {}))
-        self.has_envmap = builtin.scene_envmap(probe) is not None
+        self.envmap = builtin.scene_envmap(probe)
+        self.has_envmap = self.envmap is not None
         if not self.has_envmap:
             self.notes.append("this scene has no environment map: product sampling has nothing to "
                               "sample here, so the SH methods can only match their fallback strategies")
@@ -189,9 +190,8 @@ class SceneComparison:
         """Warped sample points over their targets (SH lobe; lobe x this scene's map)."""
         if not self.has_envmap:
             return []
-        probe = builtin.load_scene(self.path, **({"envmap": self.settings.envmap} if self.settings.envmap else {}))
         out = []
-        for i, (caption, png) in enumerate(sampler_demo_figures(builtin.scene_envmap(probe))):
+        for i, (caption, png) in enumerate(sampler_demo_figures(self.envmap)):
             path = os.path.join(self.folder, f"sampler_points_{i}.png")
             with open(path, "wb") as f:
                 f.write(png)

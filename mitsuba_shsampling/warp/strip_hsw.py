@@ -129,9 +129,9 @@ class SHStripWarp:
         self.leaf = check_leaf(leaf)
 
     def _strip(self, iz):
-        width = 2.0 / 2**self.depth
-        z0 = dr.fma(mi.Float(iz), width, -1.0)
-        return z0, z0 + width
+        """z bounds of strip ``iz`` (those of any leaf in that row)."""
+        leaf = Cell(self.depth, iz, 0)
+        return leaf.z0, leaf.z1
 
     def sample(self, coeffs, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a direction; returns (direction, pdf)."""
