@@ -15,8 +15,8 @@ import mitsuba as mi
 VARIANT = "llvm_ad_rgb"
 mi.set_variant(VARIANT)
 
-ENVMAPS_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "envmaps"
-"""Real CC0 HDR maps (``<repo>/../shared/envmaps``); absent on some machines."""
+ENVMAPS_DIR = Path(__file__).resolve().parent / "data" / "envmaps"
+"""The four real CC0 HDR maps (Poly Haven, 1024x512), shipped with the tests (see SOURCES.md there)."""
 
 
 @pytest.fixture(scope="session")
@@ -28,9 +28,7 @@ def variant() -> str:
 
 @pytest.fixture(scope="session")
 def envmaps_dir() -> Path:
-    """Folder of the real envmaps; skips the test when it is absent or empty."""
-    if not ENVMAPS_DIR.is_dir() or not any(ENVMAPS_DIR.glob("*.hdr")):
-        pytest.skip(f"real envmaps not available at {ENVMAPS_DIR}")
+    """Folder of the real envmaps shipped in ``tests/data/envmaps``."""
     return ENVMAPS_DIR
 
 

@@ -25,7 +25,9 @@ from mitsuba_shsampling.envmap.pyramid import SUBTEXEL_LEVELS  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import (  # noqa: E402
     constant_latlong, envmap_emitter, sun_sky_latlong)
 
-ENVMAP_DIR = "/work/shared/envmaps"
+from conftest import ENVMAPS_DIR
+
+ENVMAP_DIR = str(ENVMAPS_DIR)
 TILTED_30DEG = mi.ScalarAffineTransform4f().rotate(
     (np.array([0.3, 0.8, -0.52]) / np.linalg.norm([0.3, 0.8, -0.52])).tolist(), 30.0)
 
@@ -387,7 +389,6 @@ def test_negative_scale_and_non_rotation_to_world_are_value_errors():
 # ------------------------------------------------------------- real maps
 
 
-@pytest.mark.skipif(not glob.glob(os.path.join(ENVMAP_DIR, "*.hdr")), reason="no /work/shared/envmaps")
 def test_real_envmap_total_and_cells_match_emitter():
     path = sorted(glob.glob(os.path.join(ENVMAP_DIR, "*.hdr")))[0]
     emitter = mi.load_dict({"type": "envmap", "filename": path})

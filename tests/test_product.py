@@ -28,7 +28,9 @@ from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
 from mitsuba_shsampling.warp.product import (  # noqa: E402
     ProductWarp, default_sh_depth, product_fidelity)
 
-ENVMAP_DIR = "/work/shared/envmaps"
+from conftest import ENVMAPS_DIR
+
+ENVMAP_DIR = str(ENVMAPS_DIR)
 REAL_MAP = os.path.join(ENVMAP_DIR, "immenstadter_horn_1k.hdr")
 TILTED = mi.ScalarAffineTransform4f().rotate((np.array([0.3, 0.8, -0.52]) / np.linalg.norm([0.3, 0.8, -0.52])).tolist(), 40.0)
 
@@ -105,8 +107,6 @@ def sun_pyramid() -> EnvPyramid:
 
 @pytest.fixture(scope="module")
 def real_pyramid() -> EnvPyramid:
-    if not os.path.exists(REAL_MAP):
-        pytest.skip(f"{REAL_MAP} not available")
     return EnvPyramid(mi.load_dict({"type": "envmap", "filename": REAL_MAP}), max_depth=CHI2_DEPTH)
 
 
