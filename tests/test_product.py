@@ -241,16 +241,40 @@ def test_all_zero_map_gives_no_samples_and_zero_pdf():
     assert np.all(warp.pdf(coeffs, d).numpy() == 0.0)
 
 
-def test_lobe_without_positive_mass_or_non_finite_gives_zero_pdf(sun_pyramid):
+def test_lobe_without_positive_mass_or_non_finite_falls_back_to_environment_sampling(sun_pyramid):
+    environment_only = ProductWarp(sun_pyramid, defensive_share=1.0)
     warp = ProductWarp(sun_pyramid)
     negative = [0.0] * 9
     negative[0] = -1.0
     broken = [float("nan")] * 9
     for coeffs in (negative, broken):
-        d, pdf = warp.sample(opaque(coeffs), uniform_samples(256))
-        assert np.all(pdf.numpy() == 0.0)
+        d, pdf = warp.sample(opaque(coeffs), uniform_samples(4096))
         assert np.all(np.isfinite(d.numpy()))
-        assert np.all(warp.pdf(opaque(coeffs), d).numpy() == 0.0)
+        assert np.all(pdf.numpy() > 0)
+        expected = environment_only.pdf(opaque(zonal_lobe(cosine_attenuation(3), (0.0, 0.0, 1.0))), d)
+        assert np.allclose(pdf.numpy(), expected.numpy(), rtol=1e-4)
+        assert np.allclose(warp.pdf(opaque(coeffs), d).numpy(), pdf.numpy(), rtol=1e-4)
+
+
+@pytest.mark.parametrize("share", [0.05, 0.1, 0.5])
+def test_pdf_is_never_below_the_defensive_share_of_the_environments(sun_pyramid, share):
+    """q = (1 - e) p_product + e p_env >= e p_env, for ringing, clamped lobes too."""
+    environment_only = ProductWarp(sun_pyramid, defensive_share=1.0)
+    warp = ProductWarp(sun_pyramid, defensive_share=share)
+    coeffs = per_lane_lobes(8, 1 << 14, seed=5)
+    d = mi.warp.square_to_uniform_sphere(uniform_samples(1 << 14, seed=6))
+    pdf_env = environment_only.pdf(coeffs, d).numpy()
+    pdf = warp.pdf(coeffs, d).numpy()
+    assert np.all(pdf[pdf_env > 0] > 0)
+    assert np.all(pdf >= share * pdf_env * (1.0 - 1e-4))
+
+
+def test_defensive_share_must_be_in_the_unit_interval(sun_pyramid):
+    for bad in (0.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match="defensive share"):
+            ProductWarp(sun_pyramid, defensive_share=bad)
+    with pytest.raises(TypeError, match="defensive share"):
+        ProductWarp(sun_pyramid, defensive_share="0.1")
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (3, 5), (17, 33)])

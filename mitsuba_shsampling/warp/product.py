@@ -81,48 +81,93 @@ def default_sh_depth(n_bands: int) -> int:
     return max(2, math.ceil(math.log2(4 * n_bands)))
 
 
-class ProductWeights:
-    """Weight provider for :func:`walk_sample` / :func:`walk_pdf`.
+DEFAULT_DEFENSIVE_SHARE = 0.1
+"""Share of the environment's own distribution in the product strategy (see
+:class:`ProductWeights`); chosen from ``scripts/bench_defensive.py``."""
 
-    Levels ``< sh_depth``: max(SH cell integral, 0) x environment cell
-    integral; deeper levels: the environment cell integrals alone (the lobe
-    is taken as constant inside the chosen ``sh_depth`` cell). State carried
-    down the tree: that of :class:`SHCellWeights` for the SH levels, nothing
-    below.
+
+def check_defensive_share(share) -> float:
+    """Validate a defensive share: a float in (0, 1]. 0 is refused because it
+    would give up the coverage guarantee (zero-pdf holes where the clamped lobe
+    misses light that the BSDF still reflects)."""
+    if isinstance(share, bool) or not isinstance(share, (int, float)):
+        raise TypeError(f"defensive share must be a float in (0, 1], got {share!r}")
+    if not (0.0 < share <= 1.0):
+        raise ValueError(f"defensive share must be in (0, 1], got {share}")
+    return float(share)
+
+
+class ProductWeights:
+    """Weight provider for :func:`walk_sample` / :func:`walk_pdf`: a defensive
+    mixture of the product and the environment, in one walk.
+
+    The target is the mixture (Hesterberg 1995)
+
+        q = (1 - e) p_product + e p_env,
+
+    with p_env the pyramid's own distribution and e the defensive share. Both
+    are hierarchical over the same cells, so their mixture is too: the weight
+    of a child cell c is its absolute mixture probability
+
+        W(c) = (1 - e) P_product(c) + e E(c) / E(root),
+
+    where P_product(c) = P_product(parent) x (product weight of c / sum of the
+    four) is carried down the walk and E is the pyramid's cell integral. The
+    children's W sum to the parent's, so the walk's branch probabilities
+    telescope to W(leaf), and the pdf is exactly q. Hence q >= e p_env: the
+    strategy reaches every lit direction whatever the lobe (clamped ringing,
+    a proxy that misses part of the BSDF, non-finite coefficients), and its
+    estimate is never more than 1/e worse than environment sampling.
+
+    Product weights, levels ``< sh_depth``: max(SH cell integral, 0) x
+    environment cell integral. Below ``sh_depth`` the lobe is taken as
+    constant inside the chosen cell, so both parts of the mixture follow the
+    environment there: the children's weights are the pyramid's own.
+
+    Lanes whose lobe has no positive mass where the map is lit (or is not
+    finite) use e = 1, i.e. plain environment sampling.
     """
 
-    def __init__(self, coeffs: list, pyramid, sh_depth: int):
+    def __init__(self, coeffs: list, pyramid, sh_depth: int, defensive_share: float):
         self.sh = SHCellWeights(coeffs)
         self.pyramid = pyramid
         self.sh_depth = sh_depth
+        self.defensive_share = defensive_share
+        self.inv_total = 1.0 / pyramid.total if pyramid.total > 0 else 0.0
 
     def root(self):
-        return self.sh.root()
+        return {"sh": self.sh.root(), "p_product": mi.Float(1.0), "share": None, "conditional": None}
 
     def children(self, state, cell):
-        env = self.pyramid.children(cell.level, cell.iz, cell.iphi)
+        env = tuple(self.pyramid.children(cell.level, cell.iz, cell.iphi))
         if cell.level >= self.sh_depth:
-            # The environment children of a cell chosen with positive
-            # probability are never all 0: no fallback needed.
-            return tuple(env)
-        lobe = self.sh.children(state, cell)
-        weights = tuple(dr.maximum(w, 0.0) * e for w, e in zip(lobe, env))
+            return env
+        lobe = self.sh.children(state["sh"], cell)
+        product = [dr.select(w > 0, w, 0.0) * e for w, e in zip(lobe, env)]  # NaN -> 0 too
+        total = (product[0] + product[1]) + (product[2] + product[3])
+        ok = dr.isfinite(total) & (total > 0)
         if cell.level == 0:
-            # All four at 0: the lobe has no positive mass where the map is
-            # lit (or is not finite); the walk then marks the lane invalid.
-            return weights
+            state["share"] = dr.select(ok, self.defensive_share, 1.0)
         # Product weights are not additive: a child chosen with positive
         # probability can have all four of its own product weights at 0 (lobe
-        # clamped where the light is). Fall back to the environment there so
-        # no probability is lost.
-        total = (weights[0] + weights[1]) + (weights[2] + weights[3])
-        keep = total > 0
-        return tuple(dr.select(keep, w, e) for w, e in zip(weights, env))
+        # clamped where the light is). Its product part then follows the
+        # environment, so no probability is lost.
+        env_total = (env[0] + env[1]) + (env[2] + env[3])
+        conditional = [dr.select(ok, p / dr.select(ok, total, 1.0), e / dr.select(env_total > 0, env_total, 1.0))
+                       for p, e in zip(product, env)]
+        state["conditional"] = conditional
+        share, p_product = state["share"], state["p_product"]
+        return tuple(dr.fma((1.0 - share) * p_product, c, share * self.inv_total * e)
+                     for c, e in zip(conditional, env))
 
     def advance(self, state, cell, a, b):
-        if cell.level < self.sh_depth - 1:
-            return self.sh.advance(state, cell, a, b)
-        return state  # below the SH levels nothing is carried
+        if cell.level >= self.sh_depth:
+            return state  # below the SH levels nothing is carried
+        c = state["conditional"]
+        chosen = dr.select(a, dr.select(b, c[3], c[2]), dr.select(b, c[1], c[0]))
+        sh_state = self.sh.advance(state["sh"], cell, a, b) if cell.level < self.sh_depth - 1 else None
+        return {"sh": sh_state, "p_product": state["p_product"] * chosen, "share": state["share"],
+                "conditional": None}
 
 
 class ProductWarp:
@@ -137,23 +182,29 @@ class ProductWarp:
         :func:`default_sh_depth`), at least 1; deeper levels follow the
         environment alone. Capped at the pyramid's depth.
 
+    Parameter ``defensive_share`` (float in (0, 1]):
+        Weight e of the environment's own distribution in the sampled
+        mixture (1 - e) product + e environment (:class:`ProductWeights`).
+
     ``sample(coeffs, u)`` returns (world direction, solid-angle pdf);
     ``pdf(coeffs, d)`` evaluates the density for world directions. ``coeffs``
-    are n^2 per-lane SH coefficients in the grid frame. Lanes whose product
-    has no positive mass (lobe <= 0 wherever the map is lit, a black map, or
-    non-finite coefficients) get pdf 0.
+    are n^2 per-lane SH coefficients in the grid frame. The pdf is positive
+    wherever the pyramid is (every lit direction), for any coefficients; only
+    a black map gives pdf 0.
     """
 
-    def __init__(self, pyramid, sh_depth: int | None = None):
+    def __init__(self, pyramid, sh_depth: int | None = None,
+                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE):
         self.pyramid = pyramid
         self.depth = check_depth(pyramid.depth)
         #: Levels with analytic SH weights (None: chosen from the band count).
         self.sh_depth = None if sh_depth is None else check_sh_depth(sh_depth)
+        self.defensive_share = check_defensive_share(defensive_share)
 
     def _provider(self, coeffs):
         coeffs = _as_floats(coeffs)
         sh_depth = default_sh_depth(bands_of(coeffs)) if self.sh_depth is None else self.sh_depth
-        return ProductWeights(coeffs, self.pyramid, min(sh_depth, self.depth))
+        return ProductWeights(coeffs, self.pyramid, min(sh_depth, self.depth), self.defensive_share)
 
     def sample(self, coeffs, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
