@@ -79,25 +79,29 @@ def registry_id(bsdf: mi.BSDF) -> int:
     return int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
 
 
-def has_flag(flags: int, flag: mi.BSDFFlags) -> bool:
-    return (int(flags) & int(flag)) != 0
+FRAME_WRAPPERS = ("BumpMap", "NormalMap")
+"""BSDF classes that perturb the shading frame per point: their lobe is not
+oriented about ``si.sh_frame``, so no proxy is fitted (Mitsuba's sampling)."""
 
 
 def lobe_support(bsdf: mi.BSDF) -> str:
     """How product sampling treats ``bsdf``, decided from its flags.
 
     - ``"delta"``: only Dirac (or null) components, nothing to sample from an SH lobe;
-    - ``"unsupported"``: anisotropic, or with a non-Dirac transmission component
-      (the proxy is an isotropic reflection model);
+    - ``"unsupported"``: anisotropic, with a non-Dirac transmission component
+      (the proxy is an isotropic reflection model), or a wrapper that perturbs
+      the shading frame (:data:`FRAME_WRAPPERS`);
     - ``"product"``: everything else; the proxy is fitted to its ``eval``.
     """
+    if bsdf.class_name() in FRAME_WRAPPERS:
+        return "unsupported"
     flags = int(bsdf.flags())
     smooth = int(mi.BSDFFlags.Diffuse) | int(mi.BSDFFlags.Glossy)
     if not flags & smooth:
         return "delta"
-    if has_flag(flags, mi.BSDFFlags.Anisotropic):
+    if mi.has_flag(flags, mi.BSDFFlags.Anisotropic):
         return "unsupported"
-    if has_flag(flags, mi.BSDFFlags.DiffuseTransmission) or has_flag(flags, mi.BSDFFlags.GlossyTransmission):
+    if mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission) or mi.has_flag(flags, mi.BSDFFlags.GlossyTransmission):
         return "unsupported"
     return "product"
 
@@ -139,8 +143,9 @@ class SceneLobes:
         rows = [np.zeros((2, view_nodes, 3))]
         row_of_id: dict[int, int] = {}
         needed_bands = 0
-        #: Some smooth BSDF has no product lobe (anisotropic, transmissive):
-        #: its lanes need Mitsuba's own environment sampling.
+        #: Some smooth BSDF has no product lobe (anisotropic, transmissive, a
+        #: frame-perturbing wrapper, or an unusable fit): its lanes need
+        #: Mitsuba's own environment sampling.
         self.has_unsupported_lobes = False
         for shape in scene.shapes():
             bsdf = shape.bsdf()
@@ -150,17 +155,21 @@ class SceneLobes:
             if key in row_of_id:
                 continue
             support = lobe_support(bsdf)
+            params = self._fit_bsdf(bsdf, uvs) if support == "product" else None
+            if support == "product" and not self._fit_is_usable(params):
+                support, why = "unsupported", "its fitted lobe has no energy at some view elevation"
+            elif support == "unsupported":
+                why = ("it perturbs the shading frame" if bsdf.class_name() in FRAME_WRAPPERS
+                       else "it is anisotropic or transmissive")
             if support == "unsupported":
                 self.has_unsupported_lobes = True
                 warnings.warn(
-                    f"SceneLobes: BSDF '{bsdf.id()}' ({type(bsdf).__name__}, flags "
-                    f"{int(bsdf.flags()):#x}) is anisotropic or transmissive; its surfaces "
-                    "use Mitsuba's own environment sampling instead of product sampling.",
-                    stacklevel=2)
+                    f"SceneLobes: BSDF '{bsdf.id()}' ({bsdf.class_name()}, flags "
+                    f"{int(bsdf.flags()):#x}): {why}; its surfaces use Mitsuba's own "
+                    "environment sampling instead of product sampling.", stacklevel=2)
             if support != "product":
                 row_of_id[key] = 0
                 continue
-            params = self._fit_bsdf(bsdf, uvs)
             self.fits[bsdf.id()] = params
             row_of_id[key] = len(rows)
             rows.append(params)
@@ -192,13 +201,22 @@ class SceneLobes:
         params[..., 2] = 1.0
         quadratures = [mirror_quadrature(c) for c in self.view_cosines]
         lights = np.stack([q.directions for q in quadratures])
-        sides = [False, True] if has_flag(bsdf.flags(), mi.BSDFFlags.BackSide) else [False]
+        sides = [False, True] if mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide) else [False]
         for side, back in enumerate(sides):
             g = tabulate_lobe(bsdf, self.view_cosines, lights, uvs, back_side=back).mean(axis=2)
             for k, quadrature in enumerate(quadratures):
                 fit = fit_two_lobe(g[k], quadrature)
                 params[side, k] = (fit.diffuse_weight, fit.glossy_weight, fit.exponent)
         return params
+
+    @staticmethod
+    def _fit_is_usable(params: np.ndarray) -> bool:
+        """Every front-side view node carries positive, finite energy. A lobe
+        that evaluates to nothing on the fitting interactions (e.g. a wrapper
+        whose ``eval`` needs surface derivatives) would otherwise mark its
+        lanes as having no lobe at all, in lanes that are lit."""
+        energy = params[0, :, 0] + params[0, :, 1]
+        return bool(np.all(np.isfinite(params)) and np.all(energy > 0))
 
     def _bands_needed(self, params: np.ndarray) -> int:
         """Bands the sharpest significant glossy lobe of one BSDF's table needs."""
