@@ -16,7 +16,7 @@ import mitsuba as mi
 
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
-from ..warp.product import ProductWarp
+from ..warp.product import DEFAULT_DEFENSIVE_SHARE, ProductWarp
 
 
 def check_variant() -> None:
@@ -44,7 +44,7 @@ class ProductEnvironment:
     """
 
     def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None,
-                 mis_compensation: bool = True):
+                 mis_compensation: bool = True, defensive_share: float = DEFAULT_DEFENSIVE_SHARE):
         self.scene = scene
         self.emitter = scene.environment()
         self.pyramid = self.lobes = self.warp = None
@@ -67,7 +67,7 @@ class ProductEnvironment:
         if self.pyramid.is_black:
             self.reason = "the environment map is black"
             return
-        self.warp = ProductWarp(self.pyramid, sh_depth=sh_depth)
+        self.warp = ProductWarp(self.pyramid, sh_depth=sh_depth, defensive_share=defensive_share)
         self.active = True
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it:
@@ -149,13 +149,16 @@ def mis_weight(pdf_a, pdf_b):
 class SceneCache:
     """Builds :class:`ProductEnvironment` once per scene object."""
 
-    def __init__(self, max_bands: int, sh_depth: int | None, mis_compensation: bool):
+    def __init__(self, max_bands: int, sh_depth: int | None, mis_compensation: bool,
+                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE):
         self.max_bands, self.sh_depth, self.mis_compensation = max_bands, sh_depth, mis_compensation
+        self.defensive_share = defensive_share
         self._scene, self._env = None, None
 
     def get(self, scene: mi.Scene) -> ProductEnvironment:
         if self._scene is not scene:
-            self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation)
+            self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation,
+                                           self.defensive_share)
             self._scene = scene
         return self._env
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import warnings
+
 import drjit as dr
 import mitsuba as mi
 
+from ..warp.product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share
 from .environment import SceneCache, check_variant, mis_weight
 
 # Defaults chosen from end-to-end measurements (96x96, gold GGX sphere on a
@@ -17,15 +20,19 @@ DEFAULT_SH_DEPTH = 3
 
 
 def read_sh_properties(props: mi.Properties, name: str):
-    """Validated (max_bands, sh_depth, mis_compensation) shared by the SH integrators."""
+    """Validated (max_bands, sh_depth, mis_compensation, defensive_share) shared by the SH integrators."""
     max_bands = props.get("max_bands", DEFAULT_MAX_BANDS)
     sh_depth = props.get("sh_depth", DEFAULT_SH_DEPTH)
     mis_compensation = props.get("mis_compensation", True)
+    try:
+        defensive_share = check_defensive_share(props.get("defensive_share", DEFAULT_DEFENSIVE_SHARE))
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{name}: 'defensive_share': {error}") from None
     if not 3 <= max_bands <= 32:
         raise ValueError(f"{name}: 'max_bands' must be in [3, 32], got {max_bands}")
     if not (sh_depth == -1 or 1 <= sh_depth <= 12):
         raise ValueError(f"{name}: 'sh_depth' must be in [1, 12] (or -1 for automatic), got {sh_depth}")
-    return max_bands, (None if sh_depth < 0 else sh_depth), mis_compensation
+    return max_bands, (None if sh_depth < 0 else sh_depth), mis_compensation, defensive_share
 
 
 class SHDirectIntegrator(mi.SamplingIntegrator):
@@ -64,7 +71,17 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
        - |bool|
        - Product-sample against the environment minus its mean radiance
          (clamped at 0), leaving the smooth part to BSDF sampling, as
-         Mitsuba's ``envmap`` option of the same name does. (Default: true)
+         Mitsuba's ``envmap`` option of the same name does. It leaves holes
+         that only BSDF sampling covers, so it is switched off (with a
+         warning) when ``bsdf_samples`` is 0. (Default: true)
+     * - defensive_share
+       - |float|
+       - Share e of the environment's own distribution in the product
+         strategy, which samples (1 - e) product + e environment. It keeps the
+         strategy's pdf positive wherever the map is lit, so a clamped or
+         inexact lobe never leaves lit directions to BSDF sampling alone
+         (whose rare hits on a bright light are fireflies). In (0, 1].
+         (Default: 0.1)
 
     Like Mitsuba's :monosp:`direct`, but environment-map next-event estimation
     draws directions in proportion to (BSDF lobe proxy) x (environment
@@ -98,7 +115,14 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         self.hide_emitters = props.get("hide_emitters", False)
         if self.emitter_samples < 0 or self.bsdf_samples < 0 or self.emitter_samples + self.bsdf_samples == 0:
             raise ValueError("sh_direct: 'emitter_samples' and 'bsdf_samples' must be >= 0 and not both 0")
-        self.scenes = SceneCache(*read_sh_properties(props, "sh_direct"))
+        max_bands, sh_depth, mis_compensation, defensive_share = read_sh_properties(props, "sh_direct")
+        if mis_compensation and self.bsdf_samples == 0:
+            # The compensated environment is 0 wherever the map is darker than
+            # its mean: without BSDF samples nothing would reach those directions.
+            warnings.warn("sh_direct: 'mis_compensation' is switched off because 'bsdf_samples' is 0 "
+                          "(only BSDF sampling covers the directions it leaves out)", stacklevel=2)
+            mis_compensation = False
+        self.scenes = SceneCache(max_bands, sh_depth, mis_compensation, defensive_share)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass

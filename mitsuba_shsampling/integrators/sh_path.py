@@ -37,7 +37,13 @@ class SHPathIntegrator(mi.SamplingIntegrator):
        - |bool|
        - Product-sample against the environment minus its mean radiance
          (clamped at 0), leaving the smooth part to BSDF sampling, as
-         Mitsuba's ``envmap`` option of the same name does. (Default: true)
+         Mitsuba's ``envmap`` option of the same name does; BSDF sampling,
+         which continues every path, covers the directions it leaves out.
+         (Default: true)
+     * - defensive_share
+       - |float|
+       - Share of the environment's own distribution in the product
+         strategy (see :monosp:`sh_direct`). (Default: 0.1)
 
     Mitsuba's :monosp:`path` with one change: at every vertex whose BSDF has a
     smooth lobe, next-event estimation towards the environment map draws its
