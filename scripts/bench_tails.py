@@ -10,8 +10,10 @@ Mitsuba's ``direct``, and the median warm time of a pass.
     python scripts/bench_tails.py [SCENE.xml] --envmap MAP --res 1024 --spp 4 --passes 6 \
         --methods direct,direct_misc,sh_direct --set sh_direct:defensive_share=0.05 --json OUT.json
 
-``--set METHOD:key=value`` adds an integrator parameter (repeatable); a name
-``sh_direct@0.05`` with ``--share-sweep 0.05,0.1,0.2`` runs one sh_direct per share.
+``--set METHOD:key=value`` adds an integrator parameter (repeatable); a method
+name ``NAME+TAG`` runs integrator NAME under its own label (so one plugin can
+run with several settings); ``--share-sweep 0.05,0.1,0.2`` adds one sh_direct
+row per defensive share.
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ def main() -> None:
 
     methods = []
     for name in args.methods.split(","):
-        kind = {"direct": ("direct", False), "direct_misc": ("direct", True)}.get(name, (name, False))
+        base_name = name.split("+")[0]
+        kind = {"direct": ("direct", False), "direct_misc": ("direct", True)}.get(base_name, (base_name, False))
         methods.append((name, {"type": kind[0], **extra.get(name, {})}, kind[1]))
     for share in filter(None, args.share_sweep.split(",")):
         methods.append((f"sh_direct@{share}", {"type": "sh_direct", "defensive_share": float(share),

@@ -269,6 +269,26 @@ def test_pdf_is_never_below_the_defensive_share_of_the_environments(sun_pyramid,
     assert np.all(pdf >= share * pdf_env * (1.0 - 1e-4))
 
 
+def test_mis_density_has_exactly_the_support_of_the_pdf(sun_pyramid):
+    """MIS weights may use the cheap density only if it is positive exactly where the pdf is."""
+    warp = ProductWarp(sun_pyramid, sh_depth=3)
+    coeffs = per_lane_lobes(8, 1 << 15, seed=11)
+    d = mi.warp.square_to_uniform_sphere(uniform_samples(1 << 15, seed=12))
+    pdf = warp.pdf(coeffs, d).numpy()
+    mis = warp.mis_density(coeffs)(d).numpy()
+    assert np.all(np.isfinite(mis))
+    assert np.array_equal(pdf > 0, mis > 0)
+
+
+def test_mis_density_is_the_environment_pdf_where_the_lobe_has_no_mass(sun_pyramid):
+    warp = ProductWarp(sun_pyramid)
+    negative = [0.0] * 9
+    negative[0] = -1.0
+    d = mi.warp.square_to_uniform_sphere(uniform_samples(4096))
+    np.testing.assert_allclose(warp.mis_density(opaque(negative))(d).numpy(),
+                               warp.pdf(opaque(negative), d).numpy(), rtol=1e-4)
+
+
 def test_defensive_share_must_be_in_the_unit_interval(sun_pyramid):
     for bad in (0.0, -0.1, 1.5):
         with pytest.raises(ValueError, match="defensive share"):

@@ -147,10 +147,12 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
 
         coeffs, use_product = env.lobe(si, smooth)
+        mis_density = env.mis_density(coeffs)
 
         # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
         for _ in range(n_e):
-            L += env.product_nee(scene, sampler, si, bsdf, ctx, coeffs, use_product, smooth, frac_e, frac_b) / n_e
+            L += env.product_nee(scene, sampler, si, bsdf, ctx, coeffs, mis_density, use_product, smooth,
+                                   frac_e, frac_b) / n_e
         for _ in range(n_e):
             L += env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b) / n_e
 
@@ -165,7 +167,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             Le = emitter.eval(si_b, act)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             ds = mi.DirectionSample3f(scene, si_b, si)
-            pdf_em = env.hit_pdf(emitter, use_product, env.pdf(coeffs, d, act & use_product & ~delta),
+            pdf_em = env.hit_pdf(emitter, use_product, env.pdf(mis_density, d, act & use_product & ~delta),
                                  scene.pdf_emitter_direction(si, ds, act & ~delta))
             pdf_em = dr.select(delta | ~smooth, 0.0, pdf_em)
             weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e) / n_b

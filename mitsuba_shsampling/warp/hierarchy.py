@@ -118,6 +118,63 @@ def walk_sample(provider, depth: int, u: mi.Point2f):
     return Cell(depth, iz, iphi), mi.Point2f(uz, uphi), prob, valid, state
 
 
+LAST_BELOW_ONE = 0.99999994
+"""Largest float32 below 1: rescaled samples are kept in [0, 1)."""
+
+
+def descend_pyramid_sample(pyramid, cell: Cell, depth: int, u: mi.Point2f):
+    """Continue a walk from ``cell`` down to level ``depth`` of an *additive*
+    pyramid (every cell's integral is the sum of its four children's, e.g.
+    :class:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid`), choosing children
+    in proportion to their integrals with the sample ``u``.
+
+    Returns (leaf cell, rescaled sample in the leaf, P(leaf | cell)). The
+    branch probabilities telescope to leaf integral / cell integral, so no
+    product is carried down; :func:`descend_pyramid_pdf` evaluates the same
+    probability for a given point. Weights of a cell reached with positive
+    probability are finite and non-negative with a positive sum, so unlike
+    :func:`walk_sample` no clamping is needed: about a third of its work per
+    level.
+    """
+    iz, iphi = cell.iz, cell.iphi
+    uz, uphi = u.x, u.y
+    cell_integral = leaf_integral = mi.Float(1.0)
+    for level in range(cell.level, depth):
+        w = pyramid.children(level, iz, iphi)
+        row_lo = w[0] + w[1]
+        total = row_lo + (w[2] + w[3])
+        if level == cell.level:
+            cell_integral = total
+        p_lo = row_lo / total
+        a = uz >= p_lo
+        uz = dr.minimum((uz - dr.select(a, p_lo, 0.0)) / dr.select(a, 1.0 - p_lo, p_lo), LAST_BELOW_ONE)
+        left, right = dr.select(a, w[2], w[0]), dr.select(a, w[3], w[1])
+        p_left = left / (left + right)
+        b = uphi >= p_left
+        uphi = dr.minimum((uphi - dr.select(b, p_left, 0.0)) / dr.select(b, 1.0 - p_left, p_left), LAST_BELOW_ONE)
+        leaf_integral = dr.select(b, right, left)
+        iz = 2 * iz + dr.select(a, 1, 0)
+        iphi = 2 * iphi + dr.select(b, 1, 0)
+    return Cell(depth, iz, iphi), mi.Point2f(uz, uphi), leaf_integral / cell_integral
+
+
+def descend_pyramid_pdf(pyramid, cell: Cell, depth: int, z, phi):
+    """P(leaf | cell) of :func:`descend_pyramid_sample` for the leaf holding
+    (z, phi), and that leaf. The leaf is found by comparisons with the cells'
+    midpoints, as the walks do (no gathers); two gathers give the integrals."""
+    iz, iphi = cell.iz, cell.iphi
+    for level in range(cell.level, depth):
+        step = Cell(level, iz, iphi)
+        iz = 2 * iz + dr.select(z >= step.zm, 1, 0)
+        iphi = 2 * iphi + dr.select(phi >= step.phim, 1, 0)
+    leaf = Cell(depth, iz, iphi)
+    if cell.level == depth:
+        return leaf, mi.Float(1.0)
+    parent = pyramid.cell_integral(cell.level, cell.iz, cell.iphi)
+    inside = pyramid.cell_integral(depth, iz, iphi)
+    return leaf, dr.select(parent > 0, inside / dr.select(parent > 0, parent, 1.0), 0.0)
+
+
 def _choose_half(w_lo, w_hi, u):
     """One binary split driven by the sample ``u`` in [0, 1).
 
