@@ -4,7 +4,7 @@ For every map and band count: product sampling throughput (``sample``, which
 returns direction and pdf, and ``pdf`` alone), Mitsuba's own
 ``envmap.sample_direction`` throughput measured right before it in the same
 process, and the fidelity of the sampled distribution against the exact
-normalised product (:func:`mitsuba_shsampling.warp.product.product_fidelity`,
+normalised product (:func:`mitsuba_shsampling.fidelity.product_fidelity`,
 averaged over a few fixed lobes). Prints a table and writes JSON.
 
     python3 scripts/bench_product.py [--quick] [--json OUT.json] [--envmap FILE.hdr]
@@ -44,8 +44,8 @@ mi.set_variant("llvm_ad_rgb")
 from mitsuba_shsampling.envmap import EnvPyramid  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
-from mitsuba_shsampling.warp.product import (  # noqa: E402
-    ProductWarp, default_sh_depth, product_fidelity)
+from mitsuba_shsampling.fidelity import product_fidelity  # noqa: E402
+from mitsuba_shsampling.warp.product import ProductWarp, default_sh_depth  # noqa: E402
 
 SHARED_ENVMAPS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "envmaps")
 #: Lobe axes (grid frame) of the fidelity figures: zenith, horizon, nadir-ish, oblique.

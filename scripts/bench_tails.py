@@ -60,7 +60,8 @@ def main() -> None:
     methods = []
     for name in args.methods.split(","):
         base_name = name.split("+")[0]
-        kind = {"direct": ("direct", False), "direct_misc": ("direct", True)}.get(base_name, (base_name, False))
+        kind = {"direct": ("direct", False), "direct_misc": ("direct", True),
+                "env_only": ("direct", False)}.get(base_name, (base_name, False))
         methods.append((name, {"type": kind[0], **extra.get(name, {})}, kind[1]))
     for share in filter(None, args.share_sweep.split(",")):
         methods.append((f"sh_direct@{share}", {"type": "sh_direct", "defensive_share": float(share),

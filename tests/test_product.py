@@ -22,11 +22,12 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba import chi2  # noqa: E402
 
+from mitsuba_shsampling.grid import cell_index, grid_coordinates, grid_direction  # noqa: E402
 from mitsuba_shsampling.envmap import EnvPyramid  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import constant_latlong, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
-from mitsuba_shsampling.warp.product import (  # noqa: E402
-    ProductWarp, default_sh_depth, product_fidelity)
+from mitsuba_shsampling.fidelity import product_fidelity  # noqa: E402
+from mitsuba_shsampling.warp.product import ProductWarp, default_sh_depth  # noqa: E402
 
 from conftest import ENVMAPS_DIR
 
@@ -79,7 +80,7 @@ def leaf_centre_directions(warp: ProductWarp) -> mi.Vector3f:
     centres = (np.arange(cells) + 0.5) / cells
     z = mi.Float(np.repeat(-1.0 + 2.0 * centres, cells))
     phi = mi.Float(np.tile(2.0 * math.pi * centres, cells))
-    return warp.pyramid.world_from_grid(EnvPyramid.grid_direction(z, phi))
+    return warp.pyramid.world_from_grid(grid_direction(z, phi))
 
 
 def leaf_probability_sum(warp: ProductWarp, coeffs) -> float:

@@ -33,7 +33,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..warp.hierarchy import grid_coordinates, grid_direction
 
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
 #: buffer is 22.4 MB. Deeper levels would not help the warps anyway: rescaling
@@ -328,15 +327,6 @@ class EnvPyramid:
         index = dr.select(mi.UInt32(level) == 0, 0, index)
         return dr.gather(mi.Float, self.buffer, index, active)
 
-    def cell_index(self, level: int | mi.UInt32, z: mi.Float, phi: mi.Float) -> tuple[mi.UInt32, mi.UInt32]:
-        """Cell (iz, iphi) of ``level`` containing grid coordinates (z, phi);
-        points on the domain boundary are clamped into the edge cells."""
-        cells = mi.UInt32(1) << mi.UInt32(level)
-        cells_f = mi.Float(cells)
-        iz = mi.UInt32(dr.clip((z + 1) * 0.5 * cells_f, 0, cells_f - 1))
-        iphi = mi.UInt32(dr.clip(phi * (1 / _TWO_PI) * cells_f, 0, cells_f - 1))
-        return iz, iphi
-
     def level_numpy(self, k: int) -> np.ndarray:
         """Level k as a (2^k, 2^k) float32 array, rows = iz, columns = iphi."""
         k = int(k)
@@ -360,10 +350,6 @@ class EnvPyramid:
         """Grid-frame direction -> world direction (inverse of :meth:`grid_from_world`)."""
         d = mi.Vector3f(d)
         return self.to_world @ mi.Vector3f(-d.y, d.z, -d.x)
-
-    # The cylinder coordinates are the warps' (one definition for both).
-    grid_coords = staticmethod(grid_coordinates)
-    grid_direction = staticmethod(grid_direction)
 
     def __repr__(self) -> str:
         height, width = self.texel_resolution

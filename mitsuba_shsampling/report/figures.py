@@ -90,7 +90,7 @@ def sampler_demo_figures(emitter, n_bands: int = 8, exponent: float = 20.0,
     from ..envmap.pyramid import EnvPyramid
     from ..sh.basis import sh_eval_sum
     from ..sh.zonal import phong_attenuation, zonal_to_sh
-    from ..warp.hierarchy import grid_coordinates
+    from ..grid import grid_coordinates
     from ..warp.hsw import SHWarp
     from ..warp.product import ProductWarp
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 
 import drjit as dr
+import mitsuba as mi
 
 MAX_ORDER = 31
 """Highest band index supported (32 bands, 1024 coefficients)."""
@@ -38,6 +39,13 @@ def bands_of(coeffs) -> int:
         raise ValueError(
             f"an SH coefficient vector has n^2 entries for n bands; got {len(coeffs)}")
     return n
+
+
+def as_coefficients(coeffs) -> list:
+    """``coeffs`` (n^2 per-lane ``mi.Float`` or Python floats) as a list of
+    ``mi.Float``; raises ValueError unless its length is a square."""
+    bands_of(coeffs)
+    return [c if isinstance(c, mi.Float) else mi.Float(c) for c in coeffs]
 
 
 def check_order(order) -> int:

@@ -30,38 +30,50 @@ solid angle in that frame.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import drjit as dr
 import mitsuba as mi
 
-from ..sh.basis import bands_of, sh_eval_sum_on_circle
+from ..grid import Cell, grid_coordinates, grid_direction
+from ..sh.basis import as_coefficients, bands_of, sh_eval_sum_on_circle
 from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives,
                             phi_integrals_centred)
-from .hierarchy import Cell, check_depth, grid_coordinates, grid_direction, walk_pdf, walk_sample
+from .hierarchy import Split, check_depth, check_leaf, leaf_density, sample_leaf, walk_pdf, walk_sample
 
 DEFAULT_DEPTH = 8
-LEAF_KINDS = ("uniform", "bilinear")
-
-
-def _as_floats(coeffs) -> list:
-    bands_of(coeffs)
-    return [c if isinstance(c, mi.Float) else mi.Float(c) for c in coeffs]
-
-
-def check_leaf(leaf) -> str:
-    if leaf not in LEAF_KINDS:
-        raise ValueError(f"leaf must be one of {LEAF_KINDS}, got {leaf!r}")
-    return leaf
 
 
 CONSTANT_ROW_LEVELS = 3
 """Levels whose z midpoints are picked from host-computed rows (see below)."""
 
 
-class SHCellWeights:
-    """Weight provider: integrals of an SH expansion over the four children.
+class SHCellState(NamedTuple):
+    """What :class:`SHCellWeights` carries down the tree for the current cell."""
 
-    State carried down the tree: the antiderivative row at the cell's lower z
+    f_lo: dict
+    """Legendre antiderivative row at the cell's lower z bound, keyed (l, m)."""
+    a_cell: list
+    """z-contraction A[m] = sum_l f_l^m K~ I_l^|m| of the whole cell, m = -order..order."""
+    cos_c: mi.Float
+    sin_c: mi.Float
+    """cos / sin of the cell's phi centre."""
+
+
+class SHCellSplit(NamedTuple):
+    """Values of :meth:`SHCellWeights.children` that :meth:`~SHCellWeights.advance` reuses."""
+
+    f_mid: dict
+    a_lo: list
+    a_hi: list
+    centres: tuple
+    """(cos, sin) of the left and of the right children's phi centres."""
+
+
+class SHCellWeights:
+    """Quadtree weight provider: integrals of an SH expansion over the four children.
+
+    State (:class:`SHCellState`): the antiderivative row at the cell's lower z
     bound, the z-contraction A[m] of the whole cell and cos/sin of the cell's
     phi centre.
 
@@ -81,10 +93,9 @@ class SHCellWeights:
         self._root_lo = {k: mi.Float(float(v)) for k, v in lo.items()}
         self._root_cell = contract_z(coeffs, {k: float(hi[k] - lo[k]) for k in hi}, self.order)
 
-    def root(self):
+    def root(self) -> SHCellState:
         # The root spans [0, 2 pi): centre pi.
-        return {"f_lo": self._root_lo, "a_cell": self._root_cell,
-                "cos_c": mi.Float(-1.0), "sin_c": mi.Float(0.0)}
+        return SHCellState(self._root_lo, self._root_cell, mi.Float(-1.0), mi.Float(0.0))
 
     def _midpoint_row(self, cell) -> dict:
         """Antiderivative row at the z midpoint of every lane's cell."""
@@ -100,67 +111,38 @@ class SHCellWeights:
             out[key] = value
         return out
 
-    def children(self, state, cell):
+    def children(self, state: SHCellState, cell: Cell) -> Split:
         f_mid = self._midpoint_row(cell)
-        z_lo = {k: f_mid[k] - state["f_lo"][k] for k in f_mid}
+        z_lo = {k: f_mid[k] - state.f_lo[k] for k in f_mid}
         a_lo = contract_z(self.coeffs, z_lo, self.order)
-        a_hi = [ac - al for ac, al in zip(state["a_cell"], a_lo)]
+        a_hi = [ac - al for ac, al in zip(state.a_cell, a_lo)]
         # Children's centres c -+ h by angle addition (h is a Python constant).
         h = math.pi / 2 ** (cell.level + 1)
         cos_h, sin_h = math.cos(h), math.sin(h)
-        cos_c, sin_c = state["cos_c"], state["sin_c"]
+        cos_c, sin_c = state.cos_c, state.sin_c
         cos_l, sin_l = dr.fma(cos_c, cos_h, sin_c * sin_h), dr.fma(sin_c, cos_h, -cos_c * sin_h)
         cos_r, sin_r = dr.fma(cos_c, cos_h, -sin_c * sin_h), dr.fma(sin_c, cos_h, cos_c * sin_h)
         left = phi_integrals_centred(cos_l, sin_l, h, self.order)
         right = phi_integrals_centred(cos_r, sin_r, h, self.order)
-        state.update(f_mid=f_mid, a_lo=a_lo, a_hi=a_hi, centres=(cos_l, sin_l, cos_r, sin_r))
-        return (contract_phi(a_lo, left), contract_phi(a_lo, right),
-                contract_phi(a_hi, left), contract_phi(a_hi, right))
+        weights = (contract_phi(a_lo, left), contract_phi(a_lo, right),
+                   contract_phi(a_hi, left), contract_phi(a_hi, right))
+        return Split(weights, SHCellSplit(f_mid, a_lo, a_hi, (cos_l, sin_l, cos_r, sin_r)))
 
-    def advance(self, state, cell, a, b):
-        cos_l, sin_l, cos_r, sin_r = state["centres"]
-        return {
-            "f_lo": {k: dr.select(a, state["f_mid"][k], v) for k, v in state["f_lo"].items()},
-            "a_cell": [dr.select(a, hi, lo) for lo, hi in zip(state["a_lo"], state["a_hi"])],
-            "cos_c": dr.select(b, cos_r, cos_l),
-            "sin_c": dr.select(b, sin_r, sin_l),
-        }
-
-
-def _leaf_corners(coeffs: list, leaf: Cell):
-    """max(f, 0) at the leaf corners as (v00, v10, v01, v11) for Mitsuba's
-    bilinear warp, x = phi and y = z, scaled to mean 1; all ones (uniform)
-    where they vanish."""
-    lo = sh_eval_sum_on_circle(coeffs, leaf.z0, [leaf.phi0, leaf.phi1])
-    hi = sh_eval_sum_on_circle(coeffs, leaf.z1, [leaf.phi0, leaf.phi1])
-    v = [dr.maximum(c, 0.0) for c in lo + hi]
-    total = (v[0] + v[1]) + (v[2] + v[3])
-    flat = ~(dr.isfinite(total) & (total > 0))
-    # Mitsuba's bilinear warp expects an interpolant with unit integral (mean 1).
-    scale = 4.0 / dr.select(flat, 1.0, total)
-    return [dr.select(flat, 1.0, c * scale) for c in v]
+    def advance(self, state: SHCellState, pending: SHCellSplit, cell: Cell, a, b) -> SHCellState:
+        cos_l, sin_l, cos_r, sin_r = pending.centres
+        return SHCellState(
+            {k: dr.select(a, pending.f_mid[k], v) for k, v in state.f_lo.items()},
+            [dr.select(a, hi, lo) for lo, hi in zip(pending.a_lo, pending.a_hi)],
+            dr.select(b, cos_r, cos_l),
+            dr.select(b, sin_r, sin_l))
 
 
-def sample_leaf(leaf_kind: str, coeffs: list, leaf: Cell, t: mi.Point2f):
-    """Place the rescaled sample ``t`` = (t_z, t_phi) in the leaf cell.
-
-    Returns ((z, phi), density w.r.t. the leaf's unit square).
-    """
-    if leaf_kind == "bilinear":
-        p, density = mi.warp.square_to_bilinear(*_leaf_corners(coeffs, leaf), mi.Point2f(t.y, t.x))
-        t = mi.Point2f(p.y, p.x)
-    else:
-        density = mi.Float(1.0)
-    return dr.lerp(leaf.z0, leaf.z1, t.x), dr.lerp(leaf.phi0, leaf.phi1, t.y), density
-
-
-def leaf_density(leaf_kind: str, coeffs: list, leaf: Cell, z, phi):
-    """Density of :func:`sample_leaf` at (z, phi) w.r.t. the leaf's unit square."""
-    if leaf_kind != "bilinear":
-        return mi.Float(1.0)
-    t_z = dr.clip((z - leaf.z0) / (leaf.z1 - leaf.z0), 0.0, 1.0)
-    t_phi = dr.clip((phi - leaf.phi0) / (leaf.phi1 - leaf.phi0), 0.0, 1.0)
-    return mi.warp.square_to_bilinear_pdf(*_leaf_corners(coeffs, leaf), mi.Point2f(t_phi, t_z))
+def sh_leaf_corners(coeffs: list):
+    """The SH function's values at a leaf's corners, for bilinear leaves."""
+    def corners(leaf: Cell):
+        return (sh_eval_sum_on_circle(coeffs, leaf.z0, [leaf.phi0, leaf.phi1])
+                + sh_eval_sum_on_circle(coeffs, leaf.z1, [leaf.phi0, leaf.phi1]))
+    return corners
 
 
 class SHWarp:
@@ -186,15 +168,15 @@ class SHWarp:
 
     def sample(self, coeffs, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a direction; returns (direction, pdf)."""
-        coeffs = _as_floats(coeffs)
+        coeffs = as_coefficients(coeffs)
         leaf, t, prob, valid, _ = walk_sample(SHCellWeights(coeffs), self.depth, u)
-        z, phi, density = sample_leaf(self.leaf, coeffs, leaf, t)
+        z, phi, density = sample_leaf(self.leaf, leaf, t, sh_leaf_corners(coeffs))
         d = dr.select(valid, grid_direction(z, phi), mi.warp.square_to_uniform_sphere(u))
         return d, dr.select(valid, prob * density / leaf.area, 0.0)
 
     def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces ``d``."""
-        coeffs = _as_floats(coeffs)
+        coeffs = as_coefficients(coeffs)
         z, phi = grid_coordinates(d)
         leaf, _, prob, _ = walk_pdf(SHCellWeights(coeffs), self.depth, z, phi)
-        return prob * leaf_density(self.leaf, coeffs, leaf, z, phi) / leaf.area
+        return prob * leaf_density(self.leaf, leaf, z, phi, sh_leaf_corners(coeffs)) / leaf.area

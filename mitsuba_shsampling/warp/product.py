@@ -43,10 +43,12 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from ..sh.basis import bands_of, sh_eval_sum
-from .hierarchy import (Cell, check_depth, descend_pyramid_pdf, descend_pyramid_sample, grid_coordinates,
-                        grid_direction, walk_pdf, walk_sample)
-from .hsw import SHCellWeights, _as_floats
+from typing import NamedTuple
+
+from ..grid import Cell, cell_index, grid_coordinates, grid_direction
+from ..sh.basis import as_coefficients, bands_of, sh_eval_sum
+from .hierarchy import Split, check_depth, select_child, descend_pyramid_pdf, descend_pyramid_sample, walk_pdf, walk_sample
+from .hsw import SHCellState, SHCellWeights
 
 
 #: Fraction of a leaf's width kept clear of its edges when placing a sample
@@ -98,6 +100,24 @@ def check_defensive_share(share) -> float:
     return float(share)
 
 
+class ProductState(NamedTuple):
+    """What :class:`ProductWeights` carries down the tree."""
+
+    sh: SHCellState | None
+    """The SH provider's state (None below the SH levels)."""
+    p_product: mi.Float
+    """Absolute probability of the current cell under the product part."""
+    share: mi.Float | None
+    """Per-lane defensive share (e, or 1 where the lobe has no mass); None at the root."""
+
+
+class ProductSplit(NamedTuple):
+    sh: object
+    conditional: list
+    """The four children's conditional probabilities under the product part."""
+    share: mi.Float
+
+
 class ProductWeights:
     """Weight provider for :func:`walk_sample` / :func:`walk_pdf`: a defensive
     mixture of the product and the environment, in one walk.
@@ -136,19 +156,19 @@ class ProductWeights:
         self.defensive_share = defensive_share
         self.inv_total = 1.0 / pyramid.total if pyramid.total > 0 else 0.0
 
-    def root(self):
-        return {"sh": self.sh.root(), "p_product": mi.Float(1.0), "share": None, "conditional": None}
+    def root(self) -> ProductState:
+        # The share is only known once the root's product weights are (children of level 0).
+        return ProductState(self.sh.root(), mi.Float(1.0), None)
 
-    def children(self, state, cell):
+    def children(self, state: ProductState, cell: Cell) -> Split:
         env = tuple(self.pyramid.children(cell.level, cell.iz, cell.iphi))
         if cell.level >= self.sh_depth:
-            return env
-        lobe = self.sh.children(state["sh"], cell)
-        product = [dr.select(w > 0, w, 0.0) * e for w, e in zip(lobe, env)]  # NaN -> 0 too
+            return Split(env, None)
+        lobe = self.sh.children(state.sh, cell)
+        product = [dr.select(w > 0, w, 0.0) * e for w, e in zip(lobe.weights, env)]  # NaN -> 0 too
         total = (product[0] + product[1]) + (product[2] + product[3])
         ok = dr.isfinite(total) & (total > 0)
-        if cell.level == 0:
-            state["share"] = dr.select(ok, self.defensive_share, 1.0)
+        share = dr.select(ok, self.defensive_share, 1.0) if cell.level == 0 else state.share
         # Product weights are not additive: a child chosen with positive
         # probability can have all four of its own product weights at 0 (lobe
         # clamped where the light is). Its product part then follows the
@@ -156,19 +176,16 @@ class ProductWeights:
         env_total = (env[0] + env[1]) + (env[2] + env[3])
         conditional = [dr.select(ok, p / dr.select(ok, total, 1.0), e / dr.select(env_total > 0, env_total, 1.0))
                        for p, e in zip(product, env)]
-        state["conditional"] = conditional
-        share, p_product = state["share"], state["p_product"]
-        return tuple(dr.fma((1.0 - share) * p_product, c, share * self.inv_total * e)
-                     for c, e in zip(conditional, env))
+        weights = tuple(dr.fma((1.0 - share) * state.p_product, c, share * self.inv_total * e)
+                        for c, e in zip(conditional, env))
+        return Split(weights, ProductSplit(lobe.pending, conditional, share))
 
-    def advance(self, state, cell, a, b):
+    def advance(self, state: ProductState, pending, cell: Cell, a, b) -> ProductState:
         if cell.level >= self.sh_depth:
             return state  # below the SH levels nothing is carried
-        c = state["conditional"]
-        chosen = dr.select(a, dr.select(b, c[3], c[2]), dr.select(b, c[1], c[0]))
-        sh_state = self.sh.advance(state["sh"], cell, a, b) if cell.level < self.sh_depth - 1 else None
-        return {"sh": sh_state, "p_product": state["p_product"] * chosen, "share": state["share"],
-                "conditional": None}
+        chosen = select_child(pending.conditional, a, b)
+        sh_state = self.sh.advance(state.sh, pending.sh, cell, a, b) if cell.level < self.sh_depth - 1 else None
+        return ProductState(sh_state, state.p_product * chosen, pending.share)
 
 
 class ProductWarp:
@@ -205,7 +222,7 @@ class ProductWarp:
         self.defensive_share = check_defensive_share(defensive_share)
 
     def _provider(self, coeffs):
-        coeffs = _as_floats(coeffs)
+        coeffs = as_coefficients(coeffs)
         sh_depth = default_sh_depth(bands_of(coeffs)) if self.sh_depth is None else self.sh_depth
         return ProductWeights(coeffs, self.pyramid, min(sh_depth, self.depth), self.defensive_share)
 
@@ -273,11 +290,11 @@ class ProductMISDensity:
 
     def __init__(self, warp: "ProductWarp", coeffs: list):
         self.warp = warp
-        self.coeffs = _as_floats(coeffs)
+        self.coeffs = as_coefficients(coeffs)
         pyramid = warp.pyramid
         root = Cell(0, mi.UInt32(0), mi.UInt32(0))
         lobe = SHCellWeights(self.coeffs)
-        integrals = lobe.children(lobe.root(), root)
+        integrals = lobe.children(lobe.root(), root).weights
         env = pyramid.children(0, root.iz, root.iphi)
         product = [dr.select(w > 0, w, 0.0) * e for w, e in zip(integrals, env)]
         # Each root cell covers pi sr: the sum of (I / pi)(E / pi) pi.
@@ -294,70 +311,8 @@ class ProductMISDensity:
         g = pyramid.grid_from_world(d)
         z, phi = grid_coordinates(g)
         depth = self.warp.depth
-        iz, iphi = pyramid.cell_index(depth, z, phi)
+        iz, iphi = cell_index(depth, z, phi)
         density = pyramid.cell_integral(depth, iz, iphi) * ((1 << depth) ** 2 / (4.0 * math.pi))
         lobe = sh_eval_sum(self.coeffs, g)
         lobe = dr.select(dr.isfinite(lobe) & (lobe > 0), lobe, 0.0)
         return density * dr.fma(self.lobe_scale, lobe, self.env_scale)
-
-
-def product_fidelity(warp: ProductWarp, coeffs: list) -> dict:
-    """How closely ``warp`` follows the exact normalised product, for one lobe.
-
-    The reference is max(f_SH, 0) x L on the warp's leaf grid
-    (2^depth x 2^depth equal-area cells), in float64: the lobe is evaluated
-    at each leaf centre and multiplied by the pyramid's exact luminance
-    integral over the leaf, then normalised. The warp's pdf is constant on a
-    leaf, so its leaf probabilities are pdf(centre) x leaf area.
-
-    Parameter ``coeffs``: n^2 Python floats (one lobe, grid frame).
-
-    Returns a dict of float64 figures (P_e: exact leaf probability, P_s: the
-    warp's):
-
-    * ``mean_relative_error``: sum over P_e > 0 of P_e |P_s / P_e - 1|, the
-      mean relative pdf error weighted by the product (0 = exact);
-    * ``relative_variance``: sum over P_s > 0 of P_e^2 / P_s, minus
-      (1 - missed_mass)^2: the variance of the one-sample estimate of the
-      product's integral divided by its square (0 for a perfect sampler);
-    * ``missed_mass``: sum of P_e over leaves the warp never samples;
-    * ``wasted_mass``: sum of P_s over leaves where the product is 0;
-    * ``probability_sum``: sum of P_s (1 unless the product has no mass);
-    * ``tail_mass``: sum of P_e where the lobe is below 5 % of its peak.
-      Truncated SH lobes ring; where a lobe faces a dark region most of the
-      exact product can sit in such tails (clamped cell integrals hide them
-      from the warp), which inflates the other figures without concerning
-      the lobe's main part.
-    """
-    import numpy as np
-
-    cells = 1 << warp.depth
-    centres = (np.arange(cells) + 0.5) / cells
-    z = np.repeat(-1.0 + 2.0 * centres, cells)   # row iz, column iphi
-    phi = np.tile(2.0 * math.pi * centres, cells)
-    env = warp.pyramid.level_numpy(warp.depth).astype(np.float64).ravel()
-
-    float64 = dr.float64_array_t(mi.Float)
-    z64, phi64 = float64(z), float64(phi)
-    lobe = sh_eval_sum([float(c) for c in coeffs], grid_direction(z64, phi64)).numpy()
-    exact = np.maximum(lobe, 0.0) * env
-    total = exact.sum()
-    if not total > 0:
-        raise ValueError("product_fidelity: the product of this lobe and map has no mass")
-    exact /= total
-
-    world = warp.pyramid.world_from_grid(grid_direction(mi.Float(z), mi.Float(phi)))
-    opaque = [dr.opaque(mi.Float, float(c)) for c in coeffs]
-    sampled = warp.pdf(opaque, world).numpy().astype(np.float64) * (4.0 * math.pi / cells**2)
-
-    on = exact > 0
-    reached = sampled > 0
-    missed = float(exact[on & ~reached].sum())
-    return {
-        "mean_relative_error": float(np.abs(sampled[on] - exact[on]).sum()),
-        "relative_variance": float((exact[reached] ** 2 / sampled[reached]).sum() - (1.0 - missed) ** 2),
-        "missed_mass": missed,
-        "wasted_mass": float(sampled[~on].sum()),
-        "probability_sum": float(sampled.sum()),
-        "tail_mass": float(exact[lobe < 0.05 * lobe.max()].sum()),
-    }

@@ -27,16 +27,17 @@ Frame and units as in :mod:`.hsw` (SH frame, z-up, per steradian).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import drjit as dr
 import mitsuba as mi
 
-from ..sh.basis import bands_of, sh_index
+from ..grid import TWO_PI, Cell, grid_coordinates, grid_direction
+from ..sh.basis import as_coefficients, bands_of, sh_index
 from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives,
                             phi_integrals_centred, z_integrals, zonal_antiderivatives)
-from .hierarchy import (TWO_PI, Cell, check_depth, grid_coordinates, grid_direction,
-                        walk_pdf_1d, walk_sample_1d)
-from .hsw import _as_floats, check_leaf, leaf_density, sample_leaf
+from .hierarchy import Split, check_depth, check_leaf, leaf_density, sample_leaf, walk_pdf_1d, walk_sample_1d
+from .hsw import sh_leaf_corners
 
 DEFAULT_DEPTH = 12
 """Measured (scripts/bench_sh_warp.py, Phong s=20 at 20 bands): mean relative pdf
@@ -44,11 +45,26 @@ error 0.58 % at depth 10, 0.19 % at depth 12 for ~15 % more time; the
 bilinear leaf gained little (0.52 % at depth 10) and cost ~40 % more time."""
 
 
+class StripState(NamedTuple):
+    """:class:`ZonalStripWeights` state: the zonal antiderivative row at the
+    strip's lower bound, and the strip's signed integral."""
+
+    f_lo: list
+    total: mi.Float
+
+
+class StripSplit(NamedTuple):
+    f_mid: list
+    lower: mi.Float
+    upper: mi.Float
+
+
 class ZonalStripWeights:
     """1D weight provider over z: integrals of f over full-azimuth strips.
 
-    State: the zonal antiderivative row at the strip's lower bound and the
-    strip's signed integral (the upper half is the strip minus the lower half).
+    State (:class:`StripState`): the zonal antiderivative row at the strip's
+    lower bound and the strip's signed integral (the upper half is the strip
+    minus the lower half).
     """
 
     def __init__(self, coeffs: list):
@@ -61,19 +77,34 @@ class ZonalStripWeights:
             acc = dr.fma(c, b - a, acc)
         return TWO_PI * acc
 
-    def root(self):
+    def root(self) -> StripState:
         lo, hi = zonal_antiderivatives(-1.0, self.order), zonal_antiderivatives(1.0, self.order)
-        return {"f_lo": [mi.Float(v) for v in lo], "total": self._strip_integral(lo, hi)}
+        return StripState([mi.Float(v) for v in lo], self._strip_integral(lo, hi))
 
-    def children(self, state, level, z0, zm, z1):
-        state["f_mid"] = zonal_antiderivatives(zm, self.order)
-        state["lower"] = self._strip_integral(state["f_lo"], state["f_mid"])
-        state["upper"] = state["total"] - state["lower"]
-        return state["lower"], state["upper"]
+    def children(self, state: StripState, level, z0, zm, z1) -> Split:
+        f_mid = zonal_antiderivatives(zm, self.order)
+        lower = self._strip_integral(state.f_lo, f_mid)
+        upper = state.total - lower
+        return Split((lower, upper), StripSplit(f_mid, lower, upper))
 
-    def advance(self, state, level, upper):
-        return {"f_lo": [dr.select(upper, m, l) for l, m in zip(state["f_lo"], state["f_mid"])],
-                "total": dr.select(upper, state["upper"], state["lower"])}
+    def advance(self, state: StripState, pending: StripSplit, level, upper) -> StripState:
+        return StripState([dr.select(upper, m, l) for l, m in zip(state.f_lo, pending.f_mid)],
+                          dr.select(upper, pending.upper, pending.lower))
+
+
+class ArcState(NamedTuple):
+    """:class:`AzimuthWeights` state: cos/sin of the arc's centre and its integral."""
+
+    cos_c: mi.Float
+    sin_c: mi.Float
+    total: mi.Float
+
+
+class ArcSplit(NamedTuple):
+    left: mi.Float
+    right: mi.Float
+    centre_left: tuple
+    """(cos, sin, half-width) of the left child's centre."""
 
 
 class AzimuthWeights:
@@ -85,28 +116,27 @@ class AzimuthWeights:
                            legendre_antiderivatives(z1, self.order))
         self.row = contract_z(coeffs, rows, self.order)
 
-    def root(self):
+    def root(self) -> ArcState:
         # Centre of [0, 2 pi) is pi; its full-circle integral keeps only m = 0.
-        return {"cos_c": mi.Float(-1.0), "sin_c": mi.Float(0.0), "total": TWO_PI * self.row[self.order]}
+        return ArcState(mi.Float(-1.0), mi.Float(0.0), TWO_PI * self.row[self.order])
 
-    def children(self, state, level, phi0, phim, phi1):
+    def children(self, state: ArcState, level, phi0, phim, phi1) -> Split:
         h = math.pi / 2 ** (level + 1)
-        cos_c, sin_c = state["cos_c"], state["sin_c"]
+        cos_c, sin_c = state.cos_c, state.sin_c
         cos_l = dr.fma(cos_c, math.cos(h), sin_c * math.sin(h))
         sin_l = dr.fma(sin_c, math.cos(h), -cos_c * math.sin(h))
-        state["left"] = contract_phi(self.row, phi_integrals_centred(cos_l, sin_l, h, self.order))
-        state["right"] = state["total"] - state["left"]
-        state["centres"] = (cos_l, sin_l, h)
-        return state["left"], state["right"]
+        left = contract_phi(self.row, phi_integrals_centred(cos_l, sin_l, h, self.order))
+        right = state.total - left
+        return Split((left, right), ArcSplit(left, right, (cos_l, sin_l, h)))
 
-    def advance(self, state, level, upper):
-        cos_l, sin_l, h = state["centres"]
+    def advance(self, state: ArcState, pending: ArcSplit, level, upper) -> ArcState:
+        cos_l, sin_l, h = pending.centre_left
         # Right centre = left centre + 2h.
         cos_2h, sin_2h = math.cos(2 * h), math.sin(2 * h)
         cos_r = dr.fma(cos_l, cos_2h, -sin_l * sin_2h)
         sin_r = dr.fma(sin_l, cos_2h, cos_l * sin_2h)
-        return {"cos_c": dr.select(upper, cos_r, cos_l), "sin_c": dr.select(upper, sin_r, sin_l),
-                "total": dr.select(upper, state["right"], state["left"])}
+        return ArcState(dr.select(upper, cos_r, cos_l), dr.select(upper, sin_r, sin_l),
+                        dr.select(upper, pending.right, pending.left))
 
 
 class SHStripWarp:
@@ -135,21 +165,21 @@ class SHStripWarp:
 
     def sample(self, coeffs, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a direction; returns (direction, pdf)."""
-        coeffs = _as_floats(coeffs)
+        coeffs = as_coefficients(coeffs)
         iz, t_z, p_z, valid_z, _ = walk_sample_1d(ZonalStripWeights(coeffs), self.depth, u.x, -1.0, 1.0)
         iphi, t_phi, p_phi, valid_phi, _ = walk_sample_1d(
             AzimuthWeights(coeffs, *self._strip(iz)), self.depth, u.y, 0.0, TWO_PI)
         leaf = Cell(self.depth, iz, iphi)
-        z, phi, density = sample_leaf(self.leaf, coeffs, leaf, mi.Point2f(t_z, t_phi))
+        z, phi, density = sample_leaf(self.leaf, leaf, mi.Point2f(t_z, t_phi), sh_leaf_corners(coeffs))
         valid = valid_z & valid_phi
         d = dr.select(valid, grid_direction(z, phi), mi.warp.square_to_uniform_sphere(u))
         return d, dr.select(valid, p_z * p_phi * density / leaf.area, 0.0)
 
     def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces ``d``."""
-        coeffs = _as_floats(coeffs)
+        coeffs = as_coefficients(coeffs)
         z, phi = grid_coordinates(d)
         iz, p_z, _ = walk_pdf_1d(ZonalStripWeights(coeffs), self.depth, z, -1.0, 1.0)
         iphi, p_phi, _ = walk_pdf_1d(AzimuthWeights(coeffs, *self._strip(iz)), self.depth, phi, 0.0, TWO_PI)
         leaf = Cell(self.depth, iz, iphi)
-        return p_z * p_phi * leaf_density(self.leaf, coeffs, leaf, z, phi) / leaf.area
+        return p_z * p_phi * leaf_density(self.leaf, leaf, z, phi, sh_leaf_corners(coeffs)) / leaf.area
