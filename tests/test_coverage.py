@@ -79,11 +79,15 @@ def luminance(spectrum) -> mi.Float:
     return mi.luminance(spectrum) if dr.size_v(spectrum) == 3 else spectrum[0]
 
 
-def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0) -> tuple[float, float]:
+def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
+                    product_only_lanes: bool = False) -> tuple[float, float]:
     """Share of the integral of BSDF x radiance (luminance, no visibility) over
     random shading points of a sphere that falls where the environment strategy
     of the lane (product pdf, or Mitsuba's emitter pdf where product sampling
     does not run) is 0. Returns (share, fraction of lanes with a product lobe).
+    With ``product_only_lanes``, the scene's pyramid is MIS-compensated and only
+    the lanes that give every sample to the product (no BSDF sample) count:
+    their strategy, the uncompensated product, must cover everything alone.
 
     The integral is estimated with one environment sample and one BSDF sample
     per point, balance-weighted: every direction where the integrand is > 0 is
@@ -94,7 +98,7 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0) -> tuple[floa
     # Every scene BSDF goes through the same classification as in the integrators.
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        env = ProductEnvironment(scene, max_bands=8, sh_depth=3, mis_compensation=False)
+        env = ProductEnvironment(scene, max_bands=8, sh_depth=3, mis_compensation=product_only_lanes)
     emitter = scene.environment()
     rng = np.random.default_rng(seed)
     # Rays towards the sphere from random directions: shading points all over it,
@@ -110,6 +114,11 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0) -> tuple[floa
     ctx = mi.BSDFContext()
     smooth = hit & mi.has_flag(bsdf_ptr.flags(), mi.BSDFFlags.Smooth)
     coeffs, use_product = env.lobe(si, smooth)
+    if product_only_lanes:
+        all_hits = hit.numpy().copy()
+        hit &= env.product_carries_all(si, bsdf_ptr, use_product)
+        use_product &= hit
+        product_only_fraction = float(np.mean(np.broadcast_to(hit.numpy(), (points,))[all_hits]))
     sampler = rng.random((5, points)).astype(np.float32)
 
     def covering_pdf(d):
@@ -122,6 +131,8 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0) -> tuple[floa
         # that can draw the direction, and vice versa.
         if not env.active:
             return mitsuba_pdf
+        if product_only_lanes:
+            return dr.select(use_product, env.warp_plain.pdf(coeffs, d), 0.0)
         product_pdf = dr.minimum(env.warp.pdf(coeffs, d), env.pdf(env.mis_density(coeffs), d, use_product))
         return dr.select(use_product, product_pdf, mitsuba_pdf)
 
@@ -145,6 +156,8 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0) -> tuple[floa
         total += weight.sum()
         hole += weight[uncovered].sum()
     assert total > 0, "the test's quadrature found no light"
+    if product_only_lanes:
+        return hole / total, product_only_fraction
     lanes = np.broadcast_to(use_product.numpy(), (points,))
     return hole / total, float(np.mean(lanes[hit.numpy()]))
 
@@ -157,6 +170,29 @@ def test_no_lit_direction_is_left_to_bsdf_sampling_alone(name):
         assert product_lanes == 0.0  # covered by Mitsuba's emitter sampling instead
     else:
         assert product_lanes > 0.5
+
+
+@pytest.mark.parametrize("name", ["diffuse", "ggx_0.5", "beckmann_0.3"])
+def test_lanes_without_a_bsdf_sample_are_covered_by_the_uncompensated_product(name):
+    share, product_only = uncovered_share(BSDFS[name], product_only_lanes=True)
+    assert product_only > 0.5, "the check needs product-only lanes"
+    assert share < 1e-6
+
+
+def test_rough_lobes_give_every_sample_to_the_product_and_sharp_ones_do_not():
+    def product_only_fraction(bsdf):
+        scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(),
+                              "ball": {"type": "sphere", "bsdf": bsdf}})
+        env = ProductEnvironment(scene, max_bands=8, sh_depth=3)
+        ray = mi.Ray3f(mi.Point3f(0, 0, 4), mi.Vector3f(0, 0, -1))
+        si = scene.ray_intersect(ray)
+        bsdf_ptr = si.bsdf(ray)
+        _, use_product = env.lobe(si, si.is_valid())
+        return bool(env.product_carries_all(si, bsdf_ptr, use_product)[0])
+    assert product_only_fraction(BSDFS["diffuse"])
+    assert not product_only_fraction(BSDFS["ggx_0.05"])
+    assert not product_only_fraction({"type": "blendbsdf", "weight": 0.5, "bsdf_0": {"type": "diffuse"},
+                                      "bsdf_1": {"type": "conductor"}})  # a Dirac part needs BSDF samples
 
 
 def test_frame_perturbing_wrappers_fall_back_to_mitsubas_environment_sampling_with_a_warning():

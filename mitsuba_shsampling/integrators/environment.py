@@ -68,6 +68,14 @@ class ProductEnvironment:
             self.reason = "the environment map is black"
             return
         self.warp = ProductWarp(self.pyramid, sh_depth=sh_depth, defensive_share=defensive_share)
+        #: The product with the map itself (not compensated): the strategy of
+        #: lanes where it carries every sample, so that nothing is left to a
+        #: BSDF sample that does not run there. The same warp when the scene's
+        #: pyramid is not compensated.
+        self.warp_plain = self.warp
+        if self.pyramid.mis_compensation:
+            self.warp_plain = ProductWarp(EnvPyramid(self.emitter), sh_depth=sh_depth,
+                                          defensive_share=defensive_share)
         self.active = True
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it:
@@ -84,6 +92,26 @@ class ProductEnvironment:
             return None, mi.Bool(False)
         coeffs, use_product = self.lobes.coefficients(si, self.pyramid.grid_from_world, smooth)
         return coeffs, use_product & smooth
+
+    def product_carries_all(self, si, bsdf, use_product: mi.Bool) -> mi.Bool:
+        """Per lane: the product alone follows the integrand closely (its lobe
+        needs no widening, :meth:`SceneLobes.represents_exactly`) and the BSDF
+        has no Dirac part, so every sample of the lane goes to the product,
+        drawn from the map itself (coverage without a BSDF sample)."""
+        if not self.active:
+            return mi.Bool(False)
+        no_delta = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
+        return use_product & no_delta & self.lobes.represents_exactly(si, use_product)
+
+    def sample_product(self, coeffs, u: mi.Point2f, plain: mi.Bool):
+        """(direction, exact pdf) of one product sample: from :attr:`warp_plain`
+        in ``plain`` lanes, from :attr:`warp` in the others. A symbolic branch,
+        so a SIMD packet runs only the walk its lanes need."""
+        if self.warp_plain is self.warp or plain is False:
+            return self.warp.sample(coeffs, u)
+        return dr.if_stmt(args=(coeffs, u), cond=plain,
+                          true_fn=lambda c, v: self.warp_plain.sample(c, v),
+                          false_fn=lambda c, v: self.warp.sample(c, v))
 
     def mis_density(self, coeffs):
         """Per-lane stand-in for the product pdf in MIS weights (None where inactive).
@@ -107,25 +135,30 @@ class ProductEnvironment:
             return emitter_pdf
         return dr.select(use_product & self.is_environment(emitter), product_pdf, emitter_pdf)
 
-    def product_nee(self, scene, sampler, si, bsdf, ctx, coeffs, mis_density, use_product, smooth,
+    def product_nee(self, scene, u, si, bsdf, ctx, coeffs, mis_density, use_product, product_only,
                     frac_e, frac_b):
-        """One product sample of the environment (BSDF value x radiance / pdf),
-        power-heuristic weighted against BSDF sampling with the strategies'
-        sample-count fractions."""
+        """One product sample of the environment (BSDF value x radiance / pdf).
+
+        In ``product_only`` lanes (:meth:`product_carries_all`) it is one of
+        the lane's equally weighted samples: weight ``frac_e``. Elsewhere it
+        is power-heuristic weighted against BSDF sampling with the
+        strategies' sample-count fractions."""
         if not self.active:
             return mi.Spectrum(0.0)
-        d, pdf_p = self.warp.sample(coeffs, sampler.next_2d(smooth))
+        d, pdf_p = self.sample_product(coeffs, u, product_only)
         act = use_product & (pdf_p > 0)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
         act &= ~scene.ray_test(si.spawn_ray(d), act)
         Le = self.emitter.eval(environment_ray_target(d), act)
-        weight = mis_weight(mis_density(d) * frac_e, bsdf_pdf * frac_b)
+        weight = dr.select(product_only, frac_e, mis_weight(mis_density(d) * frac_e, bsdf_pdf * frac_b))
         return dr.select(act, bsdf_val * Le * (weight / pdf_p), 0.0)
 
-    def emitter_nee(self, scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b):
+    def emitter_nee(self, scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b,
+                    product_only=False):
         """One sample of Mitsuba's emitter sampling, without the environment's
         share in product lanes (that belongs to :meth:`product_nee`); not
-        traced at all when no lane can use it."""
+        traced at all when no lane can use it. In ``product_only`` lanes no
+        BSDF sample runs, so its weight is 1."""
         if not self.needs_emitter_sampling:
             return mi.Spectrum(0.0)
         ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
@@ -133,7 +166,7 @@ class ProductEnvironment:
         if self.active:
             act &= ~(use_product & self.is_environment(ds.emitter))
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
-        weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
+        weight = dr.select(ds.delta | product_only, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
         return dr.select(act, bsdf_val * em_weight * weight, 0.0)
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:

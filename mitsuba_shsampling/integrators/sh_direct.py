@@ -74,6 +74,15 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
          Mitsuba's ``envmap`` option of the same name does. It leaves holes
          that only BSDF sampling covers, so it is switched off (with a
          warning) when ``bsdf_samples`` is 0. (Default: true)
+     * - product_allocation
+       - |bool|
+       - Give every sample of a shading point to the product where it follows
+         the integrand closely: the lobe proxy needs no widening to fit
+         ``max_bands`` and the BSDF has no Dirac part (diffuse and rough
+         lobes). Those lanes draw ``emitter_samples + bsdf_samples`` product
+         samples from the uncompensated map, equally weighted, and no BSDF
+         sample; the others combine product and BSDF samples under MIS.
+         (Default: true)
      * - defensive_share
        - |float|
        - Share e of the environment's own distribution in the product
@@ -113,6 +122,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         self.emitter_samples = props.get("emitter_samples", 1)
         self.bsdf_samples = props.get("bsdf_samples", 1)
         self.hide_emitters = props.get("hide_emitters", False)
+        self.allocation = props.get("product_allocation", True)
         if self.emitter_samples < 0 or self.bsdf_samples < 0 or self.emitter_samples + self.bsdf_samples == 0:
             raise ValueError("sh_direct: 'emitter_samples' and 'bsdf_samples' must be >= 0 and not both 0")
         max_bands, sh_depth, mis_compensation, defensive_share = read_sh_properties(props, "sh_direct")
@@ -148,33 +158,51 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
         coeffs, use_product = env.lobe(si, smooth)
         mis_density = env.mis_density(coeffs)
+        # Lanes where the product alone follows the integrand give it every
+        # sample (drawn from the uncompensated map); the others combine one
+        # strategy per sample type under MIS.
+        product_only = (env.product_carries_all(si, bsdf, use_product)
+                        if self.allocation and n_b > 0 else mi.Bool(False))
 
         # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
         for _ in range(n_e):
-            L += env.product_nee(scene, sampler, si, bsdf, ctx, coeffs, mis_density, use_product, smooth,
-                                   frac_e, frac_b) / n_e
+            L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, coeffs, mis_density,
+                                 use_product, product_only, frac_e, frac_b) / n_e
         for _ in range(n_e):
-            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b) / n_e
+            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b,
+                                 product_only) / n_e
 
-        # ---------------------------- BSDF sampling ----------------------------
+        # ------------- BSDF sampling (a further product sample in product-only lanes) -------------
         for _ in range(n_b):
-            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
-            act = active & (bs.pdf > 0)
-            d = si.to_world(bs.wo)
-            si_b = scene.ray_intersect(si.spawn_ray(d), act)
-            emitter = si_b.emitter(scene, act)
-            act &= emitter != None  # noqa: E711 (per-lane pointer test)
-            Le = emitter.eval(si_b, act)
-            delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            ds = mi.DirectionSample3f(scene, si_b, si)
-            pdf_em = env.hit_pdf(emitter, use_product, env.pdf(mis_density, d, act & use_product & ~delta),
-                                 scene.pdf_emitter_direction(si, ds, act & ~delta))
-            pdf_em = dr.select(delta | ~smooth, 0.0, pdf_em)
-            weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e) / n_b
-            L += dr.select(act, bsdf_weight * Le * weight, 0.0)
+            sample_1, sample_2 = sampler.next_1d(active), sampler.next_2d(active)
+            L += dr.if_stmt(
+                args=(sample_1, sample_2), cond=product_only,
+                true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, coeffs, mis_density, use_product,
+                                                     mi.Bool(True), frac_b, frac_e) / n_b,
+                false_fn=lambda u1, u2: self.bsdf_sample(scene, si, bsdf, ctx, u1, u2, active, smooth, env,
+                                                         use_product, mis_density, frac_e, frac_b) / n_b)
 
         sees_environment = not self.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []
+
+    def bsdf_sample(self, scene, si, bsdf, ctx, sample_1, sample_2, active, smooth, env, use_product,
+                    mis_density, frac_e, frac_b):
+        """One BSDF sample of the emitters it hits, MIS-weighted against the
+        emitter strategy of the lane (product or Mitsuba's sampling)."""
+        bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active)
+        act = active & (bs.pdf > 0)
+        d = si.to_world(bs.wo)
+        si_b = scene.ray_intersect(si.spawn_ray(d), act)
+        emitter = si_b.emitter(scene, act)
+        act &= emitter != None  # noqa: E711 (per-lane pointer test)
+        Le = emitter.eval(si_b, act)
+        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        ds = mi.DirectionSample3f(scene, si_b, si)
+        pdf_em = env.hit_pdf(emitter, use_product, env.pdf(mis_density, d, act & use_product & ~delta),
+                             scene.pdf_emitter_direction(si, ds, act & ~delta))
+        pdf_em = dr.select(delta | ~smooth, 0.0, pdf_em)
+        weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)
+        return dr.select(act, bsdf_weight * Le * weight, 0.0)
 
     def to_string(self):
         return (f"SHDirectIntegrator[emitter_samples={self.emitter_samples}, "

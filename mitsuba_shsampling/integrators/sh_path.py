@@ -125,8 +125,9 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             coeffs, use_product = env.lobe(si, smooth)
             mis_density = env.mis_density(coeffs)
-            L += beta * env.product_nee(scene, sampler, si, bsdf, ctx, coeffs, mis_density, use_product, smooth,
-                                        0.5, 0.5)
+            # The BSDF sample always runs (it continues the path): no lane is product-only.
+            L += beta * env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, coeffs, mis_density,
+                                        use_product, False, 0.5, 0.5)
             L += beta * env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, 0.5, 0.5)
 
             # ------------------------------ BSDF sampling ------------------------------

@@ -229,13 +229,8 @@ class SceneLobes:
 
     # -- Device side: per-lane coefficients -----------------------------------
 
-    def lookup(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True):
-        """Interpolated proxy parameters per lane: (w_d, w_g, s, valid).
-
-        ``s`` is already clamped to ``max_exponent``; ``valid`` is False for
-        lanes without a fitted lobe (delta, unsupported, no hit, back side of a
-        one-sided BSDF, zero energy).
-        """
+    def _fitted(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True):
+        """:meth:`lookup` before the band-limit clamp of the exponent."""
         active = mi.Bool(active) & si.is_valid()
         bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
         active &= bsdf_id < self._row_of_id_size
@@ -253,9 +248,30 @@ class SceneLobes:
 
         w_d = dr.lerp(p0.x, p1.x, frac)
         w_g = dr.lerp(p0.y, p1.y, frac)
-        s = dr.minimum(dr.exp(dr.lerp(p0.z, p1.z, frac)), self.max_exponent)
+        s = dr.exp(dr.lerp(p0.z, p1.z, frac))
         valid = active & (row > 0) & (w_d + w_g > 0) & dr.isfinite(cos_view) & (cos_view != 0)
         return w_d, w_g, s, valid
+
+    def lookup(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True):
+        """Interpolated proxy parameters per lane: (w_d, w_g, s, valid).
+
+        ``s`` is already clamped to ``max_exponent``; ``valid`` is False for
+        lanes without a fitted lobe (delta, unsupported, no hit, back side of a
+        one-sided BSDF, zero energy).
+        """
+        w_d, w_g, s, valid = self._fitted(si, active)
+        return w_d, w_g, dr.minimum(s, self.max_exponent), valid
+
+    def represents_exactly(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Bool:
+        """Per lane: the proxy's glossy lobe fits in the band count without
+        being widened (its exponent is at most :attr:`max_exponent`), or
+        carries under :data:`MIN_GLOSSY_FRACTION` of the energy. Where it does
+        not, the SH lobe is wider than the BSDF and BSDF sampling is needed
+        for the sharp part; where it does, the product alone follows the
+        integrand closely."""
+        w_d, w_g, exponent, valid = self._fitted(si, active)
+        minor = w_g <= MIN_GLOSSY_FRACTION * (w_d + w_g)
+        return valid & ((exponent <= self.max_exponent) | minor)
 
     def coefficients(self, si: mi.SurfaceInteraction3f,
                      grid_from_world: Callable[[mi.Vector3f], mi.Vector3f],
