@@ -324,7 +324,11 @@ class SceneComparison:
 
         self.compare_with_baselines(results)
         maps = self.write_maps(folder, methods, equal_spp, refs)
-        run = {"sampler": sampler, "methods": results, "maps": maps, "convergence_plot": None}
+        # What actually rendered, read back from the sensor the passes used.
+        sensor = next(iter(renderers.values())).sensor if renderers else None
+        run = {"sampler": sampler, "methods": results, "maps": maps, "convergence_plot": None,
+               "sampler_plugin": sensor.sampler().class_name() if sensor else None,
+               "film_size": [int(v) for v in sensor.film().size()] if sensor else None}
         if max_spp > 0:
             plot = convergence_figure({r.label: r.convergence for r in results.values()},
                                       f"{self.name}, {sampler} sampler")

@@ -170,7 +170,9 @@ def _scene_section(page: _Page, scene: dict) -> None:
         for fig in scene["sampler_figures"]:
             page.add(f'<img src="{page.embed(fig["png"])}" alt="{_e(fig["caption"])}">')
     for run in scene["runs"]:
-        page.add(f"<h3>{_e(scene['scene'])}: {_e(run['sampler'])} sampler</h3>")
+        rendered = (f" (rendered by Mitsuba's {_e(run['sampler_plugin'])}, film "
+                    f"{run['film_size'][0]} x {run['film_size'][1]})" if run.get("sampler_plugin") else "")
+        page.add(f"<h3>{_e(scene['scene'])}: {_e(run['sampler'])} sampler{rendered}</h3>")
         page.add(_metrics_table(run))
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
             figs = []
