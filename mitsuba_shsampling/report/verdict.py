@@ -20,7 +20,7 @@ import dataclasses
 
 import numpy as np
 
-from .metrics import BIAS_ALPHA
+from .metrics import BIAS_ALPHA, TAIL_PERCENTILE
 
 #: Bootstrap resamples and the two-sided coverage of the interval.
 BOOTSTRAP_RESAMPLES = 2000
@@ -123,22 +123,28 @@ def _caveats(scene: dict, run: dict, names: list[str], baseline: str) -> list[st
     if min(spps.values()) <= MIN_EQUAL_TIME_SPP:
         listing = ", ".join(f"{n} {s}" for n, s in spps.items())
         notes.append(f"equal-time spp too coarse to compare ({listing}): raise --spp")
+    kinds = (("equal_spp", "equal samples"), ("equal_time", "equal time"))
+    heavy = [n for n in names if any(results[n][k]["tail_worse_than_baseline"] for k, _ in kinds)]
+    if heavy:
+        passes = len(results[names[0]]["equal_spp"]["times_s"])
+        notes.append(f"heavy tails: {', '.join(heavy)} {'is' if len(heavy) == 1 else 'are'} worse than "
+                     f"{baseline} in the brightest pixel, the {TAIL_PERCENTILE:g} % error or the firefly "
+                     f"count (the scene's table says which); rare bright samples dominate such an "
+                     f"error, so it may be larger than {passes} passes show")
     for n in names:
-        for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
-            entry = results[n][kind]
-            if entry["tail_worse_than_baseline"]:
-                notes.append(f"heavy tail, {n} at {title}: {'; '.join(entry['tail_worse_than_baseline'])}. "
-                             f"Its expected error may be larger than {len(entry['times_s'])} passes show")
-            if entry["bias"]["flagged"]:
-                notes.append(
-                    f"bias flag, {n} at {title}: p = {entry['bias']['p_value']:.2g} < "
-                    f"{BIAS_ALPHA:g}; its mean over passes differs from the reference by more than "
-                    f"noise explains: a bias, or samples so heavy-tailed that the passes missed the rare "
-                    f"bright ones, or (probability {BIAS_ALPHA:g} per test) chance. Re-check with independent seeds and more passes: python "
-                    f"scripts/bias_check.py {scene['path']} --method {n} --passes 64")
-            if entry["error"]["non_finite"]:
-                notes.append(f"{n} at {title} rendered {entry['error']['non_finite']} non-finite "
-                             f"pixel values; they are left out of its statistics")
+        flagged = [(title, results[n][k]["bias"]["p_value"]) for k, title in kinds if results[n][k]["bias"]["flagged"]]
+        if flagged:
+            where = ", ".join(f"{title} (p = {p:.2g})" for title, p in flagged)
+            notes.append(
+                f"bias flag: {n} at {where}. Its average image differs from the reference by more than "
+                f"noise explains: a bias, samples so heavy-tailed that the passes missed the rare bright "
+                f"ones, or chance (probability {BIAS_ALPHA:g} per test for an unbiased method). Re-check "
+                f"with independent seeds and more passes: python scripts/bias_check.py {scene['path']} "
+                f"--method {n} --passes 64")
+        bad = sum(results[n][k]["error"]["non_finite"] for k, _ in kinds)
+        if bad:
+            notes.append(f"{n} rendered {bad} non-finite pixel values (NaN or infinite); they are left "
+                         f"out of its statistics")
     return notes
 
 
