@@ -12,7 +12,9 @@ import mitsuba as mi
 
 mi.set_variant("llvm_ad_rgb")
 
-from mitsuba_shsampling import cli  # noqa: E402
+from mitsuba_shsampling import cli, scenes  # noqa: E402
+from mitsuba_shsampling.report import scene_setup  # noqa: E402
+from mitsuba_shsampling.scenes import SceneError  # noqa: E402
 
 #: A plain Mitsuba 3 scene: no <default> at all, its own sampler and a 4:3 film; a textured
 #: diffuse ground and a glossy sphere under a small envmap, all files next to it.
@@ -159,3 +161,42 @@ def test_a_non_finite_texel_never_prints_nan_and_the_report_says_why(tmp_path):
             assert error["mse"] is not None or error["non_finite"] > 0
             if error["non_finite"]:
                 assert "non-finite pixel values" in page
+
+
+def test_the_rebuilt_camera_renders_exactly_what_the_scenes_own_camera_renders():
+    scene = scenes.load_scene(scenes.builtin_scenes()["sphere_ggx010"], res=16, sampler="independent")
+    sensor = scene_setup.comparison_sensor(scene, 16, "independent", 4)
+    integrator = mi.load_dict({"type": "direct"})
+    own = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
+    rebuilt = np.array(mi.render(scene, sensor=sensor, integrator=integrator, spp=4, seed=3))
+    assert np.allclose(own, rebuilt, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("camera, kept", [
+    ({"type": "thinlens", "fov": 30, "aperture_radius": 0.05, "focus_distance": 4.0},
+     {"aperture_radius": 0.05, "focus_distance": 4.0, "x_fov": 30.0}),
+    ({"type": "orthographic"}, {}),
+    ({"type": "perspective", "fov": 50, "fov_axis": "y", "principal_point_offset_x": 0.1},
+     {"principal_point_offset_x": 0.1}),
+])
+def test_the_rebuilt_camera_keeps_the_lens_pose_and_aspect_of_the_scenes_camera(camera, kept):
+    pose = mi.ScalarTransform4f().look_at(origin=[1, 2, 5], target=[0, 0, 0], up=[0, 1, 0])
+    scene = mi.load_dict({"type": "scene", "sensor": dict(camera, to_world=pose, near_clip=0.5,
+                                                           film={"type": "hdrfilm", "width": 60, "height": 30})})
+    original = mi.traverse(scene.sensors()[0])
+    sensor = scene_setup.comparison_sensor(scene, 20, "multijitter", 4)
+    params = mi.traverse(sensor)
+    assert sensor.class_name() == scene.sensors()[0].class_name()
+    assert sensor.sampler().class_name() == "MultijitterSampler"
+    assert list(sensor.film().size()) == [20, 10]
+    assert np.allclose(np.array(params["to_world"].matrix), np.array(original["to_world"].matrix), atol=1e-5)
+    assert np.ravel(params["near_clip"])[0] == pytest.approx(0.5)
+    for name in kept:
+        assert np.allclose(np.array(params[name]), np.array(original[name]), rtol=1e-5), name
+
+
+def test_a_camera_compare_cannot_rebuild_is_refused_with_a_clear_message():
+    scene = mi.load_dict({"type": "scene", "sensor": {"type": "radiancemeter",
+                                                       "film": {"type": "hdrfilm", "width": 1, "height": 1}}})
+    with pytest.raises(SceneError, match="perspective, thin-lens and orthographic"):
+        scene_setup.comparison_sensor(scene, 16, "independent", 1)
