@@ -149,7 +149,7 @@ def _print_summary(report: dict) -> None:
     for row in report["verdict"]:
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
             c = row[kind]
-            print(f"  {row['scene']} [{row['sampler']}] {title}: {c['winner']} wins; {c['numerator']} / "
+            print(f"  {row['scene']} [{row['sampler']}, {row['family']}] {title}: {c['winner']} wins; {c['numerator']} / "
                   f"{c['denominator']} {c['quantity']} x{_fmt(c['ratio'], '.3g')} "
                   f"[{_fmt(c['low'], '.3g')}, {_fmt(c['high'], '.3g')}]")
         for caveat in row["caveats"]:

@@ -66,8 +66,8 @@ def test_verdict_table_is_visible_first_with_one_row_per_scene_and_sampler(repor
     report = json.loads((report_page / "report.json").read_text())
     assert len(rows) == len(report["verdict"]) == 1
     cells = rows[0].find_elements(By.TAG_NAME, "td")
-    assert cells[0].text == "sphere_ggx010" and cells[1].text == "independent"
-    winners = [c.find_element(By.TAG_NAME, "b").text for c in cells[2:4]]
+    assert [c.text for c in cells[:3]] == ["sphere_ggx010", "independent", "direct"]
+    winners = [c.find_element(By.TAG_NAME, "b").text for c in cells[3:5]]
     assert winners == [report["verdict"][0]["equal_spp"]["winner"], report["verdict"][0]["equal_time"]["winner"]]
     # Nothing but the title and the verdict heading comes before it.
     assert table.location["y"] < browser.find_element(By.TAG_NAME, "details").location["y"]

@@ -15,6 +15,7 @@ import os
 
 from . import metrics, verdict
 from .images import data_uri
+from .methods import DIRECT
 
 STYLE = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
@@ -74,22 +75,24 @@ def _verdict_section(report: dict) -> str:
     rows = report["verdict"]
     if not rows:
         return "<p>No verdict: fewer than two methods ran in every scene.</p>"
-    head = ("<tr><th>scene</th><th>sampler</th><th>equal samples: winner (lowest expected MSE)</th>"
+    head = ("<tr><th>scene</th><th>sampler</th><th>lighting</th><th>equal samples: winner (lowest expected MSE)</th>"
             "<th>equal time: winner (highest efficiency)</th><th>caveats</th></tr>")
     body = []
     for r in rows:
         cells = []
         for kind in ("equal_spp", "equal_time"):
             cells.append(f'<td class="win">{_cell_text(r[kind])}</td>')
-        body.append(f'<tr><td>{_e(r["scene"])}</td><td>{_e(r["sampler"])}</td>{"".join(cells)}'
-                    f'<td>{len(r["caveats"])}</td></tr>')
+        lighting = "direct" if r["family"] == DIRECT else "multi-bounce"
+        body.append(f'<tr><td>{_e(r["scene"])}</td><td>{_e(r["sampler"])}</td><td>{lighting}</td>'
+                    f'{"".join(cells)}<td>{len(r["caveats"])}</td></tr>')
     table = f'<table id="verdict">{head}{"".join(body)}</table>'
     legend = (f"<p>The winner of each comparison is highlighted. Below it: the project's best method "
               f"over the best of Mitsuba's own strategies in the same run (or, with no project method, "
               f"the winner over the runner-up): MSE ratio at equal samples (below 1: the first is "
               f"better), efficiency ratio 1/(MSE x time) at equal time (above 1: the first is better); "
               f"in brackets the {verdict.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
-    caveats = "".join(f"<li><b>{_e(r['scene'])}, {_e(r['sampler'])}</b>: {_e(c)}</li>"
+    caveats = "".join(f"<li><b>{_e(r['scene'])}, {_e(r['sampler'])}"
+                      f"{'' if r['family'] == DIRECT else ', multi-bounce'}</b>: {_e(c)}</li>"
                       for r in rows for c in r["caveats"])
     caveat_block = (f'<h3>Caveats</h3><ul class="note">{caveats}</ul>' if caveats
                     else "<p>No caveats: time budgets, tails, bias tests and reference noise are all fine.</p>")
