@@ -29,8 +29,8 @@ import mitsuba as mi
 
 import math
 
-from ..scenes import SceneError
-from . import html, images, metrics, scene_setup, verdict
+from ..scenes import SceneError, scene_envmap
+from . import html, images, metrics, verdict
 from .methods import BASELINE, DIRECT, METHODS, MULTI_BOUNCE_BASELINE, Method, available_methods
 from .figures import sampler_demo_figures
 from .plots import convergence_figure
@@ -170,7 +170,7 @@ class SceneComparison:
             probe, _ = load_for_settings(self.path, dict(self.render_settings, sampler="independent"))
         except SceneError as err:
             raise SceneError(f"{scene_path}: {err}") from None
-        self.envmap = scene_setup.envmap_emitter(probe)
+        self.envmap = scene_envmap(probe)
         self.has_envmap = self.envmap is not None
         if not self.has_envmap:
             self.notes.append("this scene has no environment map: product sampling has nothing to "

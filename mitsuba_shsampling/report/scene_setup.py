@@ -27,7 +27,7 @@ import numpy as np
 
 import mitsuba as mi
 
-from ..scenes import SceneError
+from ..scenes import SceneError, scene_envmap
 
 #: Camera plugins whose parameters :func:`comparison_sensor` can carry over.
 SUPPORTED_CAMERAS = {"PerspectiveCamera": "perspective", "ThinLensCamera": "thinlens",
@@ -81,14 +81,6 @@ def comparison_sensor(scene: mi.Scene, width: int, sampler: str, spp: int) -> mi
     return mi.load_dict(desc)
 
 
-def envmap_emitter(scene: mi.Scene) -> mi.Emitter | None:
-    """The scene's ``envmap`` emitter, or None (no environment, or another infinite emitter)."""
-    env = scene.environment()
-    if env is None or "data" not in mi.traverse(env).keys():
-        return None
-    return env
-
-
 def with_environment(scene: mi.Scene, filename: str | None = None,
                      mis_compensation: bool = False) -> mi.Scene:
     """``scene`` with its envmap rebuilt from ``filename`` (None: the same texels) and
@@ -96,7 +88,7 @@ def with_environment(scene: mi.Scene, filename: str | None = None,
 
     :raises SceneError: the scene has no ``envmap`` emitter.
     """
-    env = envmap_emitter(scene)
+    env = scene_envmap(scene)
     if env is None:
         raise SceneError("the scene has no envmap emitter to replace or compensate")
     params = mi.traverse(env)
