@@ -200,3 +200,25 @@ def test_a_camera_compare_cannot_rebuild_is_refused_with_a_clear_message():
                                                        "film": {"type": "hdrfilm", "width": 1, "height": 1}}})
     with pytest.raises(SceneError, match="perspective, thin-lens and orthographic"):
         scene_setup.comparison_sensor(scene, 16, "independent", 1)
+
+
+def test_rebuilding_the_envmap_keeps_every_other_emitter_shape_and_the_image():
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at(
+            origin=[0, 2, 6], target=[0, 0, 0], up=[0, 1, 0]), "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+        "env": {"type": "envmap", "bitmap": mi.Bitmap(sky().astype(np.float32)), "scale": 0.5,
+                "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], 40)},
+        "sphere": {"type": "sphere", "bsdf": {"type": "roughconductor", "alpha": 0.3}},
+        "light": {"type": "rectangle", "emitter": {"type": "area", "radiance": 5.0},
+                  "to_world": mi.ScalarTransform4f().translate([0, 3, 0]).rotate([1, 0, 0], 90)},
+        "point": {"type": "point", "position": [2, 2, 2], "intensity": 10.0},
+    })
+    rebuilt = scene_setup.with_environment(scene)
+    assert len(rebuilt.emitters()) == len(scene.emitters()) == 3
+    assert len(rebuilt.shapes()) == len(scene.shapes())
+    integrator = mi.load_dict({"type": "direct"})
+    own, again = (np.array(mi.render(s, integrator=integrator, spp=8, seed=5)) for s in (scene, rebuilt))
+    assert np.allclose(own, again, rtol=1e-4, atol=1e-6)
+    compensated = scene_setup.with_environment(scene, mis_compensation=True)
+    assert not np.allclose(own, np.array(mi.render(compensated, integrator=integrator, spp=8, seed=5)))

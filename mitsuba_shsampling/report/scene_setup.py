@@ -99,12 +99,16 @@ def with_environment(scene: mi.Scene, filename: str | None = None,
     else:
         # `data` carries one wrap-around halo column on each side (mitsuba.md).
         desc["bitmap"] = mi.Bitmap(np.ascontiguousarray(np.array(params["data"])[:, 1:-1], dtype=np.float32))
-    objects = {"type": "scene", "environment": mi.load_dict(desc)}
+    # Emitters keep their order (the new envmap takes the old one's place), so that a seed
+    # draws the same emitter choices as in the original scene.
+    objects = {"type": "scene"}
+    for i, emitter in enumerate(scene.emitters()):
+        if emitter is env:
+            objects[f"emitter_{i}"] = mi.load_dict(desc)
+        elif emitter.get_shape() is None:
+            objects[f"emitter_{i}"] = emitter
     for i, shape in enumerate(scene.shapes()):
         objects[f"shape_{i}"] = shape  # carries its BSDF and area emitter
-    for i, emitter in enumerate(scene.emitters()):
-        if emitter is not env and emitter.get_shape() is None:
-            objects[f"emitter_{i}"] = emitter
     for i, sensor in enumerate(scene.sensors()):
         objects[f"sensor_{i}"] = sensor
     return mi.load_dict(objects)
