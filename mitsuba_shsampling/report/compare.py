@@ -180,9 +180,11 @@ class SceneComparison:
             bad = int(np.count_nonzero(~np.isfinite(texels)))
             if bad:
                 self.notes.append(
-                    f"the environment map has {bad} non-finite texel values (NaN or infinite). This "
-                    f"report assumes the integrators either ignore them or render non-finite pixels; "
-                    f"pixels that come out non-finite are counted and left out of every statistic")
+                    f"the environment map has {bad} non-finite texel values (NaN or infinite). Pixels "
+                    f"that come out non-finite (in the reference or in any pass) are counted and left "
+                    f"out of every statistic. An integrator that zeroes such texels (the SH integrators "
+                    f"warn when they do) renders another map than the reference and Mitsuba's methods: "
+                    f"on this scene its comparison with them is not like for like")
         self.references: dict[str, Reference] = {}
 
     def rel(self, path: str) -> str:
