@@ -41,11 +41,14 @@ def build_parser() -> argparse.ArgumentParser:
     compare = sub.add_parser("compare", parents=[common],
                              help="render every method at equal samples and equal time, write a report")
     compare.add_argument("scenes", nargs="*", metavar="SCENE.xml",
-                         help="scene files (default: the built-in sphere_ggx010 scene)")
+                         help="Mitsuba 3 scene files, used as written (their camera is rebuilt at --res "
+                              "with each --sampler; default: the built-in sphere_ggx010 scene)")
     compare.add_argument("--out", default="report", help="report folder (default %(default)s)")
-    compare.add_argument("--spp", type=_positive, default=16, help="samples per pixel at 2 rays each (default %(default)s)")
-    compare.add_argument("--passes", type=int, default=4, help="independent passes per method, >= 2 (default %(default)s)")
-    compare.add_argument("--envmap", help="lat-long map replacing the scene's environment")
+    compare.add_argument("--spp", type=_positive, default=8, help="samples per pixel at 2 rays each (default %(default)s)")
+    compare.add_argument("--passes", type=int, default=32,
+                         help="independent passes per method and comparison, >= 2; many low-spp passes "
+                              "let rare, huge samples into the expected error (default %(default)s)")
+    compare.add_argument("--envmap", help="lat-long map replacing the scene's envmap emitter")
     compare.add_argument("--methods", help="comma-separated method names (default: all available)")
     compare.add_argument("--sampler", default="independent,multijitter",
                          help=f"comma-separated samplers among {', '.join(SAMPLERS)} (default %(default)s)")
@@ -108,9 +111,6 @@ def _compare(args) -> int:
         except ValueError as err:
             raise UsageError(str(err)) from None
     paths = args.scenes or [scenes.default_scene_path()]
-    for path in paths:
-        if args.envmap and "envmap" not in scenes.scene_parameters(path):
-            raise UsageError(f"--envmap: {path} declares no $envmap parameter to swap")
     settings = CompareSettings(out=args.out, res=args.res, spp=args.spp, passes=args.passes,
                                ref_spp=args.ref_spp, samplers=tuple(samplers),
                                methods=tuple(methods) if methods else None, envmap=args.envmap,
@@ -118,22 +118,42 @@ def _compare(args) -> int:
                                convergence_max_spp=args.convergence_max_spp,
                                cache_dir=args.cache_dir, progress=not args.no_progress)
     report = run_compare(paths, settings)
+    _print_summary(report)
+    print(f"\nreport: {os.path.join(os.path.abspath(args.out), 'index.html')}")
+    return 0
+
+
+def _fmt(value, spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
+def _print_summary(report: dict) -> None:
+    """The verdict, then one line per method and comparison (n/a: see the report's notes)."""
     for scene in report["scenes"]:
         for note in scene["notes"]:
             print(f"note ({scene['scene']}): {note}")
         for run in scene["runs"]:
-            print(f"\n{scene['scene']} [{run['sampler']}]  {'method':<16}{'spp':>5}{'MSE':>11}"
-                  f"{'relMSE':>10}{'time(s)':>9}{'eff/base':>9}  | equal time: {'spp':>4}{'MSE':>11}{'eff/base':>9}  bias")
+            print(f"\n{scene['scene']} [{run['sampler']}]")
+            print(f"  {'method':<16}{'kind':<11}{'spp':>5}{'exp. MSE':>11}{'pix.var':>10}{'time(s)':>9}"
+                  f"{'eff/base':>9}{'max px':>9}{'fireflies':>10}{'bias p':>9}")
             for name, entry in run["methods"].items():
-                a, b = entry["equal_spp"], entry["equal_time"]
-                ratio_a = a.get("efficiency_ratio_vs_baseline")
-                ratio_b = b.get("efficiency_ratio_vs_baseline")
-                print(f"{'':>{len(scene['scene']) + len(run['sampler']) + 4}}{name:<16}{a['spp']:>5}{a['mse']:>11.3e}"
-                      f"{a['rel_mse']:>10.3e}{a['time_s']:>9.3f}{(ratio_a or float('nan')):>9.2f}  |"
-                      f"{'':>13}{b['spp']:>4}{b['mse']:>11.3e}{(ratio_b or float('nan')):>9.2f}  "
-                      f"{'ok' if a['bias_ok'] and b['bias_ok'] else 'FAIL'}")
-    print(f"\nreport: {os.path.join(os.path.abspath(args.out), 'index.html')}")
-    return 0
+                for kind in ("equal_spp", "equal_time"):
+                    e = entry[kind]
+                    print(f"  {name:<16}{kind:<11}{e['spp']:>5}{_fmt(e['error']['mse'], '11.3e')}"
+                          f"{_fmt(e['error']['pixel_variance'], '10.2e')}{_fmt(e['time_s'], '9.3f')}"
+                          f"{_fmt(e['efficiency_ratio_vs_baseline'], '9.2f')}{_fmt(e['tail']['max_pixel'], '9.3g')}"
+                          f"{e['tail']['fireflies']:>10}{_fmt(e['bias']['p_value'], '9.2g')}"
+                          f"{'  BIAS?' if e['bias']['flagged'] else ''}"
+                          f"{'  TAIL' if e['tail_worse_than_baseline'] else ''}")
+    print("\nverdict:")
+    for row in report["verdict"]:
+        for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
+            c = row[kind]
+            print(f"  {row['scene']} [{row['sampler']}, {row['family']}] {title}: {c['winner']} wins; {c['numerator']} / "
+                  f"{c['denominator']} {c['quantity']} x{_fmt(c['ratio'], '.3g')} "
+                  f"[{_fmt(c['low'], '.3g')}, {_fmt(c['high'], '.3g')}]")
+        for caveat in row["caveats"]:
+            print(f"    caveat: {caveat}")
 
 
 def _bench(args) -> int:

@@ -1,12 +1,13 @@
-"""Bias check with many independent passes: SH integrator vs a Mitsuba `path` reference.
+"""Bias check with many independent passes: one compare method against a Mitsuba `path` reference.
 
-    python scripts/bias_check.py scenes/sphere_ggx030.xml [--envmap MAP] [--passes 16]
+    python scripts/bias_check.py SCENE.xml [--method sh_direct] [--envmap MAP] [--passes 64]
 
-The image mean of K passes of ``sh_direct`` (or ``--integrator``) is compared
-with the mean of K independent ``path`` (max_depth 2) passes; z is the
-difference over its standard error estimated from both sets. |z| < 4 means no
-detectable bias. Use it when a 4-pass report flags a method: with 4 passes
-the standard error has 3 degrees of freedom and |t| > 4 happens 2.8 % of the time.
+The statistic is the report's (``mitsuba_shsampling.report.metrics.bias_test``):
+each pass of the method and each reference pass (``path`` at the method's
+family depth) gives one number, its image-mean luminance; Welch's t-test
+compares their means. Flagged when p < 1e-3 (two-sided), the report's
+false-alarm rate. Use it when a report flags a method: the seeds here are
+independent of the report's, and more passes narrow the test.
 """
 
 from __future__ import annotations
@@ -21,30 +22,45 @@ import numpy as np
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("scene")
+    parser.add_argument("--method", default="sh_direct", help="a compare method name (default %(default)s)")
     parser.add_argument("--envmap")
-    parser.add_argument("--integrator", default="sh_direct")
-    parser.add_argument("--passes", type=int, default=16)
-    parser.add_argument("--spp", type=int, default=64)
-    parser.add_argument("--ref-spp", type=int, default=512)
+    parser.add_argument("--passes", type=int, default=64)
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--ref-passes", type=int, default=16)
+    parser.add_argument("--ref-spp", type=int, default=256)
     parser.add_argument("--res", type=int, default=64)
+    parser.add_argument("--max-depth", type=int, default=2)
     args = parser.parse_args()
 
     mi.set_variant("llvm_ad_rgb")
     import mitsuba_shsampling  # noqa: F401  (registers the integrators)
-    from mitsuba_shsampling.scenes import load_scene
+    from mitsuba_shsampling.report import metrics
+    from mitsuba_shsampling.report.methods import available_methods
+    from mitsuba_shsampling.report.rendering import MethodRenderer, load_for_settings, reference_integrator
 
-    scene = load_scene(args.scene, res=args.res, **({"envmap": args.envmap} if args.envmap else {}))
-    reference = mi.load_dict({"type": "path", "max_depth": 2})
-    tested = mi.load_dict({"type": args.integrator})
-    ref = np.array([np.mean(mi.render(scene, integrator=reference, spp=args.ref_spp, seed=50_000 + k))
-                    for k in range(args.passes)])
-    est = np.array([np.mean(mi.render(scene, integrator=tested, spp=args.spp, seed=100 + k))
-                    for k in range(args.passes)])
-    se = np.sqrt(est.var(ddof=1) / len(est) + ref.var(ddof=1) / len(ref))
-    z = float((est.mean() - ref.mean()) / se)
-    print(json.dumps({"scene": args.scene, "envmap": args.envmap, "integrator": args.integrator,
-                      "passes": args.passes, "mean": float(est.mean()), "reference_mean": float(ref.mean()),
-                      "z": z, "unbiased_within_4_se": abs(z) < 4}))
+    try:
+        runnable, notes = available_methods([args.method], multi_bounce=args.max_depth > 2)
+    except ValueError as err:
+        parser.error(str(err))
+    if not runnable:
+        parser.error(notes[0])
+    method = runnable[0]
+    settings = {"res": args.res, "sampler": "independent", "envmap": args.envmap, "max_depth": args.max_depth}
+    tested = MethodRenderer(args.scene, method, settings)
+    scene, sensor = load_for_settings(args.scene, settings)
+    reference = mi.load_dict(reference_integrator(method.family, args.max_depth))
+
+    ref = metrics.image_mean_luminance(np.stack([
+        np.array(mi.render(scene, sensor=sensor, integrator=reference, spp=args.ref_spp, seed=50_000 + k))
+        for k in range(args.ref_passes)]))
+    est = metrics.image_mean_luminance(np.stack([tested.render(args.spp, 700_000 + k)[0]
+                                                 for k in range(args.passes)]))
+    test = metrics.bias_test(est, ref)
+    print(json.dumps({"scene": args.scene, "envmap": args.envmap, "method": method.name,
+                      "passes": args.passes, "spp": args.spp, "reference_passes": args.ref_passes,
+                      "reference_spp": args.ref_spp, "mean": test.mean, "reference_mean": test.reference_mean,
+                      "t": test.t, "dof": test.dof, "p_value": test.p_value, "alpha": test.alpha,
+                      "flagged": test.flagged}))
 
 
 if __name__ == "__main__":

@@ -3,8 +3,9 @@
     python scripts/results_table.py report_a/report.json report_b/report.json ...
 
 For every scene x sampler, the SH method is set against the *best* of
-Mitsuba's own strategies in the same run (lowest MSE at equal samples,
-highest efficiency = 1/(MSE x time)), and against ``direct`` 1+1.
+Mitsuba's own strategies in the same run (lowest expected MSE at equal samples,
+highest efficiency = 1/(MSE x time)), and against ``direct`` 1+1. "bias ok" is
+the report's bias test (p >= 1e-3), "tail ok" its tail comparison with ``direct``.
 """
 
 from __future__ import annotations
@@ -30,17 +31,18 @@ def rows(report: dict):
                 continue
             ours = methods[SH_METHOD]["equal_spp"]
             theirs = {n: methods[n]["equal_spp"] for n in MITSUBA_METHODS if n in methods}
-            best_mse = min(theirs, key=lambda n: theirs[n]["mse"])
+            best_mse = min(theirs, key=lambda n: theirs[n]["error"]["mse"])
             best_eff = max(theirs, key=lambda n: theirs[n]["efficiency"])
             direct = theirs.get("direct")
             yield {
                 "map": envmap_name(report), "scene": scene["scene"], "sampler": run["sampler"],
-                "mse_vs_direct": ours["mse"] / direct["mse"] if direct else None,
-                "mse_vs_best": ours["mse"] / theirs[best_mse]["mse"], "best_mse": best_mse,
+                "mse_vs_direct": ours["error"]["mse"] / direct["error"]["mse"] if direct else None,
+                "mse_vs_best": ours["error"]["mse"] / theirs[best_mse]["error"]["mse"], "best_mse": best_mse,
                 "eff_vs_direct": ours["efficiency"] / direct["efficiency"] if direct else None,
                 "eff_vs_best": ours["efficiency"] / theirs[best_eff]["efficiency"], "best_eff": best_eff,
                 "time_vs_direct": ours["time_s"] / direct["time_s"] if direct else None,
-                "bias_ok": ours["bias_ok"],
+                "bias_ok": not ours["bias"]["flagged"],
+                "tail_ok": not ours["tail_worse_than_baseline"],
             }
 
 
@@ -55,12 +57,13 @@ def main() -> None:
     args = parser.parse_args()
     table = [r for path in args.reports for r in rows(json.load(open(path)))]
     print("| map | scene | MSE / direct | MSE / best Mitsuba (which) | efficiency / direct "
-          "| efficiency / best Mitsuba (which) | time / direct | bias ok |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| efficiency / best Mitsuba (which) | time / direct | bias ok | tail ok |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in table:
         print(f"| {r['map']} | {r['scene']} | {fmt(r['mse_vs_direct'])} | {fmt(r['mse_vs_best'])} "
               f"({r['best_mse']}) | {fmt(r['eff_vs_direct'])} | {fmt(r['eff_vs_best'])} ({r['best_eff']}) "
-              f"| {fmt(r['time_vs_direct'])} | {'yes' if r['bias_ok'] else 'NO'} |")
+              f"| {fmt(r['time_vs_direct'])} | {'yes' if r['bias_ok'] else 'NO'} "
+              f"| {'yes' if r['tail_ok'] else 'NO'} |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(table, f, indent=1)

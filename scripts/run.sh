@@ -7,12 +7,14 @@
 #                                 passed on to `mitsuba-shsampling compare`)
 #
 # Installs the system libLLVM that Dr.Jit's LLVM backend needs (>= 16; Debian
-# 12's LLVM 15 aborts renders) and the package with its test extras into a
-# virtual environment at .venv.
+# 12's LLVM 15 aborts renders), for `test` also Debian's chromium and
+# chromium-driver (the report page is tested in a headless browser), and the
+# package with its test extras into a virtual environment at .venv.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
 VENV=${SHSAMPLING_VENV:-$ROOT/.venv}
+cmd=${1:-test}
 
 have_good_llvm() {
     local lib
@@ -38,6 +40,17 @@ if ! have_good_llvm && [ -z "${DRJIT_LIBLLVM_PATH:-}" ]; then
     fi
 fi
 
+if [ "$cmd" = test ] && ! { command -v chromium >/dev/null && command -v chromedriver >/dev/null; }; then
+    echo "[setup] the report's browser test needs chromium and chromedriver; installing them with apt-get"
+    if command -v apt-get >/dev/null && { [ "$(id -u)" = 0 ] || sudo -n true 2>/dev/null; }; then
+        as_root apt-get update -qq
+        as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null
+    else
+        echo "[setup] cannot install them here: run 'sudo apt-get install chromium chromium-driver', then retry." >&2
+        exit 1
+    fi
+fi
+
 if [ ! -x "$VENV/bin/python" ]; then
     echo "[setup] creating virtual environment $VENV"
     if ! python3 -m venv "$VENV" 2>/dev/null; then
@@ -48,7 +61,6 @@ fi
 "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
 "$VENV/bin/python" -m pip install -q -e "$ROOT[test]"
 
-cmd=${1:-test}
 shift || true
 case "$cmd" in
     test)    exec "$VENV/bin/python" -m pytest -q -p no:cacheprovider "$@" tests ;;

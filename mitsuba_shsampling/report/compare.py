@@ -1,11 +1,14 @@
 """The ``compare`` command: every method of a scene at equal samples and equal time.
 
-For each scene and sampler, each method renders K independent passes at an
-equal ray budget, then K passes at the spp that takes about as long as the
-baseline (``direct`` 1+1 or ``path``) at the requested spp, then a
-convergence sweep (one render per spp value). Everything is measured against a
-cached ``path`` reference and written to ``report.json``, ``metrics.csv``,
-EXR/PNG files and ``index.html``.
+For each scene and sampler, each method renders K independent passes (K >= 32 by
+default, so that rare, huge samples show up in the expected error) at an equal
+ray budget, then K passes at the spp that takes about as long as the baseline
+(``direct`` 1+1 or ``path``) at the requested spp, then a convergence sweep (one
+render per spp value). Everything is measured against a cached ``path``
+reference (:mod:`.metrics`: expected error, tails, bias test), judged in a
+verdict (:mod:`.verdict`), and written to ``report.json``, ``metrics.csv``,
+EXR/PNG files and ``index.html``. Results are dataclasses; :func:`serialise` is
+the one place they become JSON.
 """
 
 from __future__ import annotations
@@ -24,13 +27,15 @@ from tqdm import tqdm
 import drjit as dr
 import mitsuba as mi
 
-from .. import scenes as builtin
-from . import html, images, metrics
-from .methods import BASELINE, DIRECT, MULTI_BOUNCE, MULTI_BOUNCE_BASELINE, Method, available_methods
+import math
+
+from ..scenes import SceneError, scene_envmap
+from . import html, images, metrics, verdict
+from .methods import BASELINE, DIRECT, METHODS, MULTI_BOUNCE_BASELINE, Method, available_methods
 from .figures import sampler_demo_figures
 from .plots import convergence_figure
 from .rendering import (SEED_CONVERGENCE, SEED_EQUAL_TIME, MethodRenderer, PassSet, Reference,
-                        REFERENCE_CHUNKS, admissible_spp, render_reference, write_exr)
+                        REFERENCE_CHUNKS, admissible_spp, load_for_settings, render_reference, write_exr)
 
 
 @dataclasses.dataclass
@@ -39,8 +44,8 @@ class CompareSettings:
 
     out: str = "report"
     res: int = 128
-    spp: int = 16
-    passes: int = 4
+    spp: int = 8
+    passes: int = 32
     ref_spp: int = 1024
     samplers: tuple[str, ...] = ("independent", "multijitter")
     methods: tuple[str, ...] | None = None
@@ -82,38 +87,70 @@ def convergence_spps(sampler: str, max_spp: int) -> list[int]:
     return [v for v in values if v <= max(max_spp, values[0])]
 
 
-def pass_metrics(passes: PassSet, reference: Reference) -> dict:
-    """Metrics of K passes against the reference (per pass, averaged)."""
-    mse = float(np.mean([metrics.mse(img, reference.image) for img in passes.images]))
-    rel = float(np.mean([metrics.rel_mse(img, reference.image) for img in passes.images]))
-    bias = metrics.bias_check(passes.images, reference.image, reference.variance)
-    return {
-        "spp": passes.spp,
-        "mse": mse,
-        "rel_mse": rel,
-        "time_s": passes.time_s,
-        "times_s": passes.times_s,
-        "efficiency": metrics.efficiency(mse, passes.time_s),
-        "mean_pixel_variance": float(metrics.pixel_variance(passes.images).mean()),
-        "bias_ok": bias["bias_ok"],
-        "bias_fail_fraction": bias["fail_fraction"],
-        "bias_mean_z": bias["mean_z"],
-        "bias_expected_fail_fraction": bias["expected_fail_fraction"],
-        "bias_pixels_suspect": bias["pixels_suspect"],
-        "seeds": passes.seeds,
-    }
+@dataclasses.dataclass
+class PassResult:
+    """K passes of one method at one sample count (equal samples or equal time).
+
+    :param time_s: median wall time of a warm pass (s); ``times_s`` every pass's.
+    :param efficiency: 1 / (expected MSE x ``time_s``).
+    :param files: report-relative paths of the first pass (EXR, PNG) and of the mean of all
+        passes (EXR); every pass enters the statistics, only these are kept as images.
+    :param tail_worse_than_baseline: the tail statistics worse than the family baseline's
+        (``direct`` or ``path``) at the same kind of comparison (:func:`.metrics.tail_worse`).
+    """
+
+    spp: int
+    time_s: float
+    times_s: list[float]
+    efficiency: float
+    error: metrics.ErrorStats
+    tail: metrics.TailStats
+    bias: metrics.BiasTest
+    seeds: list[int]
+    files: dict[str, str]
+    tail_worse_than_baseline: list[str] = dataclasses.field(default_factory=list)
+    mse_ratio_vs_baseline: float | None = None
+    efficiency_ratio_vs_baseline: float | None = None
+    budget_method: str | None = None
+    time_budget_s: float | None = None
 
 
-def save_passes(folder: str, tag: str, passes: PassSet, exposure: float, root: str) -> list[str]:
-    """Write every pass as EXR and PNG under ``folder``; returns the EXR paths relative to ``root``."""
+@dataclasses.dataclass
+class MethodResult:
+    """One method of one scene and sampler."""
+
+    label: str
+    family: str
+    rays_per_sample: int
+    integrator: dict
+    scene_params: dict
+    compile_time_s: float | None
+    equal_spp: PassResult
+    equal_time: PassResult | None = None
+    convergence: list[dict] = dataclasses.field(default_factory=list)
+
+
+def measure(passes: PassSet, reference: Reference, files: dict[str, str]) -> PassResult:
+    """Every statistic of K passes against the reference."""
+    error = metrics.error_stats(passes.images, reference.image)
+    return PassResult(
+        spp=passes.spp, time_s=passes.time_s, times_s=passes.times_s,
+        efficiency=metrics.efficiency(error.mse, passes.time_s), error=error,
+        tail=metrics.tail_stats(passes.images, reference.image),
+        bias=metrics.bias_test(metrics.image_mean_luminance(passes.images), reference.chunk_means),
+        seeds=passes.seeds, files=files)
+
+
+def save_passes(folder: str, tag: str, passes: PassSet, exposure: float, root: str) -> dict[str, str]:
+    """Write the first pass (EXR, PNG) and the mean of all passes (EXR) under ``folder``."""
     os.makedirs(folder, exist_ok=True)
-    paths = []
-    for k, image in enumerate(passes.images):
-        stem = os.path.join(folder, f"{tag}_pass{k}")
-        write_exr(stem + ".exr", image)
-        images.write_png(stem + ".png", images.tonemap(image, exposure))
-        paths.append(os.path.relpath(stem + ".exr", root))
-    return paths
+    stem = os.path.join(folder, tag)
+    write_exr(stem + "_pass0.exr", passes.images[0])
+    images.write_png(stem + "_pass0.png", images.tonemap(passes.images[0], exposure))
+    write_exr(stem + "_mean.exr", passes.images.mean(axis=0))
+    return {"first_pass": os.path.relpath(stem + "_pass0.exr", root),
+            "first_pass_png": os.path.relpath(stem + "_pass0.png", root),
+            "mean": os.path.relpath(stem + "_mean.exr", root)}
 
 
 class SceneComparison:
@@ -129,13 +166,25 @@ class SceneComparison:
         self.notes: list[str] = []
         self.render_settings = {"res": settings.res, "envmap": settings.envmap,
                                 "max_depth": settings.max_depth}
-        probe = builtin.load_scene(self.path, **({"envmap": settings.envmap} if settings.envmap else {}))
-        self.envmap = builtin.scene_envmap(probe)
+        try:
+            probe, _ = load_for_settings(self.path, dict(self.render_settings, sampler="independent"))
+        except SceneError as err:
+            raise SceneError(f"{scene_path}: {err}") from None
+        self.envmap = scene_envmap(probe)
         self.has_envmap = self.envmap is not None
         if not self.has_envmap:
             self.notes.append("this scene has no environment map: product sampling has nothing to "
                               "sample here, so the SH methods can only match their fallback strategies")
-        self.declared = builtin.scene_parameters(self.path)
+        else:
+            texels = np.array(mi.traverse(self.envmap)["data"])[:, 1:-1]
+            bad = int(np.count_nonzero(~np.isfinite(texels)))
+            if bad:
+                self.notes.append(
+                    f"the environment map has {bad} non-finite texel values (NaN or infinite). Pixels "
+                    f"that come out non-finite (in the reference or in any pass) are counted and left "
+                    f"out of every statistic. An integrator that zeroes such texels (the SH integrators "
+                    f"warn when they do) renders another map than the reference and Mitsuba's methods: "
+                    f"on this scene its comparison with them is not like for like")
         self.references: dict[str, Reference] = {}
 
     def rel(self, path: str) -> str:
@@ -148,9 +197,9 @@ class SceneComparison:
         self.notes += notes
         runnable = []
         for method in chosen:
-            missing = [p for p in method.scene_params if p not in self.declared]
-            if missing:
-                self.notes.append(f"skipped '{method.name}': the scene declares no ${', $'.join(missing)}")
+            if method.scene_params and not self.has_envmap:
+                self.notes.append(f"skipped '{method.name}': it rebuilds the envmap "
+                                  f"({', '.join(method.scene_params)}) and the scene has none")
                 continue
             runnable.append(method)
         return runnable
@@ -174,10 +223,15 @@ class SceneComparison:
             stem = os.path.join(self.folder, f"reference_{family}")
             write_exr(stem + ".exr", ref.image)
             images.write_png(stem + ".png", images.tonemap(ref.image, exposure))
-            ref_entries[family] = {"spp": ref.spp, "cache_file": ref.path, "cached": ref.cached,
+            if ref.non_finite:
+                self.notes.append(f"the {family} reference has {ref.non_finite} non-finite pixel values: "
+                                  f"those pixels are left out of every method's statistics")
+            ref_entries[family] = {"spp": ref.spp, "chunks": int(ref.chunks.shape[0]),
+                                   "cache_file": ref.path, "cached": ref.cached,
                                    "render_time_s": ref.time_s, "file": self.rel(stem + ".exr"),
                                    "png": self.rel(stem + ".png"),
-                                   "mean_variance": float(ref.variance.mean()),
+                                   "mean_variance": float(np.nanmean(np.where(np.isfinite(ref.variance),
+                                                                              ref.variance, np.nan))),
                                    "integrator": "path, max_depth "
                                    + ("2" if family == DIRECT else str(self.settings.max_depth))}
         runs = [self.run_sampler(sampler, methods, refs, exposure) for sampler in self.settings.samplers]
@@ -200,9 +254,10 @@ class SceneComparison:
 
     @staticmethod
     def exposure(reference: np.ndarray) -> float:
-        """Exposure that maps the 99th luminance percentile of the reference to 0.9."""
-        lum = reference[..., :3].mean(axis=-1)
-        p99 = float(np.quantile(lum, 0.99))
+        """Exposure that maps the 99th luminance percentile of the (finite) reference to 0.9."""
+        lum = metrics.luminance(reference)
+        lum = lum[np.isfinite(lum)]
+        p99 = float(np.quantile(lum, 0.99)) if lum.size else 0.0
         return 0.9 / p99 if p99 > 0 else 1.0
 
     def run_sampler(self, sampler: str, methods: list[Method], refs: dict[str, Reference],
@@ -210,7 +265,7 @@ class SceneComparison:
         s = self.settings
         settings = dict(self.render_settings, sampler=sampler)
         folder = os.path.join(self.folder, sampler)
-        results: dict[str, dict] = {}
+        results: dict[str, MethodResult] = {}
         renderers: dict[str, MethodRenderer] = {}
 
         # Equal ray budget: K passes each. A method that fails to load or render is dropped
@@ -230,13 +285,11 @@ class SceneComparison:
                 continue
             self.bar.update(s.passes)
             equal_spp[m.name] = passes
-            entry = {"label": m.label, "family": m.family, "rays_per_sample": m.rays_per_sample,
-                     "integrator": m.integrator, "scene_params": m.scene_params,
-                     "compile_time_s": r.compile_time_s}
-            entry["equal_spp"] = pass_metrics(passes, refs[m.family])
-            entry["equal_spp"]["files"] = save_passes(os.path.join(folder, m.name), "equal_spp",
-                                                     passes, exposure, self.root)
-            results[m.name] = entry
+            files = save_passes(os.path.join(folder, m.name), "equal_spp", passes, exposure, self.root)
+            results[m.name] = MethodResult(
+                label=m.label, family=m.family, rays_per_sample=m.rays_per_sample,
+                integrator=m.integrator, scene_params=m.scene_params, compile_time_s=r.compile_time_s,
+                equal_spp=measure(passes, refs[m.family], files))
 
         # Equal time: each method gets the spp that costs the baseline's time per pass.
         for m in methods:
@@ -247,11 +300,11 @@ class SceneComparison:
             target = max(1, round(budget / per_sample)) if per_sample > 0 else equal_spp[m.name].spp
             passes = renderers[m.name].passes(target, s.passes, s.seed + SEED_EQUAL_TIME)
             self.bar.update(s.passes)
-            entry = pass_metrics(passes, refs[m.family])
-            entry.update(time_budget_s=budget, budget_method=base,
-                         files=save_passes(os.path.join(folder, m.name), "equal_time", passes,
-                                           exposure, self.root))
-            results[m.name]["equal_time"] = entry
+            files = save_passes(os.path.join(folder, m.name), "equal_time", passes, exposure, self.root)
+            result = results[m.name]
+            result.equal_time = measure(passes, refs[m.family], files)
+            result.equal_time.time_budget_s = budget
+            result.equal_spp.budget_method = result.equal_time.budget_method = base
 
         # Convergence sweep: one render per spp value, with the first sampler only (the
         # others recompile their kernels for every new sample count).
@@ -259,7 +312,6 @@ class SceneComparison:
         if sampler != s.samplers[0]:
             max_spp = 0
         for m in methods:
-            points = []
             if max_spp > 0:
                 self.bar.set_description(f"{self.name}/{sampler}/{m.name} convergence")
                 for i, spp in enumerate(convergence_spps(sampler, max_spp)):
@@ -267,17 +319,20 @@ class SceneComparison:
                     ref = refs[m.family].image
                     stem = os.path.join(folder, m.name, f"convergence_spp{spp}")
                     write_exr(stem + ".exr", image)
-                    points.append({"spp": spp, "time_s": elapsed, "mse": metrics.mse(image, ref),
-                                   "rel_mse": metrics.rel_mse(image, ref),
-                                   "file": self.rel(stem + ".exr")})
+                    results[m.name].convergence.append(
+                        {"spp": spp, "time_s": elapsed, "mse": metrics.mse(image, ref),
+                         "rel_mse": metrics.rel_mse(image, ref), "file": self.rel(stem + ".exr")})
                     self.bar.update(1)
-            results[m.name]["convergence"] = points
 
-        self.add_ratios(results)
+        self.compare_with_baselines(results)
         maps = self.write_maps(folder, methods, equal_spp, refs)
-        run = {"sampler": sampler, "methods": results, "maps": maps, "convergence_plot": None}
+        # What actually rendered, read back from the sensor the passes used.
+        sensor = next(iter(renderers.values())).sensor if renderers else None
+        run = {"sampler": sampler, "methods": results, "maps": maps, "convergence_plot": None,
+               "sampler_plugin": sensor.sampler().class_name() if sensor else None,
+               "film_size": [int(v) for v in sensor.film().size()] if sensor else None}
         if max_spp > 0:
-            plot = convergence_figure({results[n]["label"]: results[n]["convergence"] for n in results},
+            plot = convergence_figure({r.label: r.convergence for r in results.values()},
                                       f"{self.name}, {sampler} sampler")
             plot_path = os.path.join(folder, "convergence.png")
             with open(plot_path, "wb") as f:
@@ -286,26 +341,27 @@ class SceneComparison:
         return run
 
     @staticmethod
-    def baseline_name(method: Method, results: dict) -> str:
+    def baseline_name(method: Method, results: dict[str, MethodResult]) -> str:
         """The method whose time per pass sets the equal-time budget of ``method``'s family."""
         base = BASELINE if method.family == DIRECT else MULTI_BOUNCE_BASELINE
         if base in results:
             return base
-        same_family = [n for n, r in results.items() if r["family"] == method.family]
+        same_family = [n for n, r in results.items() if r.family == method.family]
         return same_family[0]
 
     @staticmethod
-    def add_ratios(results: dict) -> None:
-        """MSE and efficiency relative to the family baseline (same run)."""
-        for name, entry in results.items():
-            base = results.get(BASELINE if entry["family"] == DIRECT else MULTI_BOUNCE_BASELINE)
-            for kind in ("equal_spp", "equal_time"):
-                if base is None:
-                    continue
-                b, e = base[kind], entry[kind]
-                e["mse_ratio_vs_baseline"] = e["mse"] / b["mse"] if b["mse"] > 0 else None
-                e["efficiency_ratio_vs_baseline"] = (e["efficiency"] / b["efficiency"]
-                                                     if b["efficiency"] > 0 else None)
+    def compare_with_baselines(results: dict[str, MethodResult]) -> None:
+        """MSE, efficiency and tails relative to the family baseline (same run, same kind)."""
+        for entry in results.values():
+            base_name = BASELINE if entry.family == DIRECT else MULTI_BOUNCE_BASELINE
+            base = results.get(base_name)
+            if base is None:
+                continue
+            for b, e in ((base.equal_spp, entry.equal_spp), (base.equal_time, entry.equal_time)):
+                e.mse_ratio_vs_baseline = e.error.mse / b.error.mse if b.error.mse > 0 else None
+                e.efficiency_ratio_vs_baseline = e.efficiency / b.efficiency if b.efficiency > 0 else None
+                if entry is not base:
+                    e.tail_worse_than_baseline = metrics.tail_worse(e.tail, b.tail, base_name)
 
     def write_maps(self, folder: str, methods: list[Method], equal_spp: dict[str, PassSet],
                    refs: dict[str, Reference]) -> dict:
@@ -333,32 +389,67 @@ def count_renders(settings: CompareSettings, n_methods: int) -> int:
     return per_sampler * len(settings.samplers) + n_methods * sweep + REFERENCE_CHUNKS
 
 
+CSV_FIELDS = ["scene", "sampler", "method", "comparison", "spp", "mse", "rel_mse", "pixel_variance",
+              "time_s", "efficiency", "max_pixel", "abs_error_percentile", "fireflies", "bias_t",
+              "bias_p_value", "bias_flagged", "mse_ratio_vs_baseline", "efficiency_ratio_vs_baseline",
+              "compile_time_s"]
+
+
 def write_csv(path: str, report: dict) -> None:
-    """One row per scene x sampler x method x comparison."""
-    fields = ["scene", "sampler", "method", "comparison", "spp", "mse", "rel_mse", "time_s",
-              "efficiency", "bias_ok", "bias_fail_fraction", "bias_mean_z", "mean_pixel_variance",
-              "mse_ratio_vs_baseline", "efficiency_ratio_vs_baseline", "compile_time_s"]
+    """One row per scene x sampler x method x comparison (from the serialised report)."""
     with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=fields)
+        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
         writer.writeheader()
         for scene in report["scenes"]:
             for run in scene["runs"]:
                 for name, entry in run["methods"].items():
                     for kind in ("equal_spp", "equal_time"):
-                        row = {k: entry[kind].get(k) for k in fields if k in entry[kind]}
-                        row.update(scene=scene["scene"], sampler=run["sampler"], method=name,
-                                   comparison=kind, compile_time_s=entry["compile_time_s"])
-                        writer.writerow(row)
+                        e = entry[kind]
+                        writer.writerow({
+                            "scene": scene["scene"], "sampler": run["sampler"], "method": name,
+                            "comparison": kind, "spp": e["spp"], "mse": e["error"]["mse"],
+                            "rel_mse": e["error"]["rel_mse"], "pixel_variance": e["error"]["pixel_variance"],
+                            "time_s": e["time_s"], "efficiency": e["efficiency"],
+                            "max_pixel": e["tail"]["max_pixel"],
+                            "abs_error_percentile": e["tail"]["abs_error_percentile"],
+                            "fireflies": e["tail"]["fireflies"], "bias_t": e["bias"]["t"],
+                            "bias_p_value": e["bias"]["p_value"], "bias_flagged": e["bias"]["flagged"],
+                            "mse_ratio_vs_baseline": e["mse_ratio_vs_baseline"],
+                            "efficiency_ratio_vs_baseline": e["efficiency_ratio_vs_baseline"],
+                            "compile_time_s": entry["compile_time_s"]})
+
+
+def serialise(value):
+    """JSON form of the report: dataclasses as dicts, non-finite floats as None.
+
+    Every NaN has a note in the report saying where it came from (:mod:`.metrics`), so the
+    JSON stays strict (``allow_nan=False``) and no ``nan`` is printed silently.
+    """
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: serialise(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, dict):
+        return {k: serialise(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [serialise(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+#: Names of the project's methods (those needing a plugin of this package), for the verdict.
+PROJECT_METHODS = frozenset(m.name for m in METHODS if m.plugin is not None)
 
 
 def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
-    """Run the comparison of every scene, write the report folder, return the report dict."""
+    """Run the comparison of every scene, write the report folder, return the report (JSON form)."""
     os.makedirs(settings.out, exist_ok=True)
     started = time.time()
     report = environment_info()
-    settings_dict = dataclasses.asdict(settings)
-    settings_dict["samplers"] = list(settings.samplers)
-    report["settings"] = settings_dict
+    report["settings"] = settings
     report["scenes"] = []
     for path in scene_paths:
         n_methods = len(available_methods(list(settings.methods) if settings.methods else None,
@@ -367,8 +458,10 @@ def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
                   desc=os.path.basename(path), unit="render", file=sys.stderr) as bar:
             report["scenes"].append(SceneComparison(path, settings, bar).run())
     report["total_time_s"] = time.time() - started
+    report = serialise(report)
+    report["verdict"] = serialise(verdict.verdict(report, PROJECT_METHODS))
     with open(os.path.join(settings.out, "report.json"), "w") as f:
-        json.dump(report, f, indent=2)
+        json.dump(report, f, indent=2, allow_nan=False)
     write_csv(os.path.join(settings.out, "metrics.csv"), report)
     html.write_html(os.path.join(settings.out, "index.html"), report)
     return report

@@ -1,7 +1,10 @@
 """The self-contained ``index.html`` of a comparison report.
 
-Every image is embedded as a base64 PNG (the page works when copied alone);
-links point to the EXR files next to it, by paths relative to the report folder.
+Written from the serialised report (the dict saved as ``report.json``). The
+verdict comes first, then the caveats, then one section per scene; settings and
+machine are in a collapsed ``<details>`` at the bottom. Every image is embedded
+as a base64 PNG (the page works when copied alone); links point to the EXR files
+next to it, by paths relative to the report folder.
 """
 
 from __future__ import annotations
@@ -10,17 +13,21 @@ import html as html_escape
 import json
 import os
 
+from . import metrics, verdict
 from .images import data_uri
+from .methods import DIRECT
 
 STYLE = """
-body { font-family: sans-serif; margin: 1.5em; color: #222; }
+body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
 table { border-collapse: collapse; margin: 0.5em 0 1em 0; font-size: 0.85em; }
 th, td { border: 1px solid #bbb; padding: 3px 7px; text-align: right; }
 th { background: #eee; } td.name { text-align: left; }
+table#verdict { font-size: 1em; } table#verdict td, table#verdict th { text-align: left; }
+td.win { background: #d7f5d0; font-weight: bold; }
 .row { display: flex; flex-wrap: wrap; gap: 8px; }
 figure { margin: 0; text-align: center; font-size: 0.75em; }
 figure img { image-rendering: pixelated; width: 192px; }
-.note { color: #8a4b00; } .bad { color: #b00; font-weight: bold; }
+.note { color: #8a4b00; } .bad { color: #b00; font-weight: bold; } .na { color: #b00; }
 pre { background: #f6f6f6; padding: 0.5em; font-size: 0.8em; }
 """
 
@@ -30,11 +37,12 @@ def _e(text) -> str:
 
 
 def _num(value, digits: int = 4) -> str:
+    """A report number; a missing one (non-finite, or not measured) says so instead of 'nan'."""
     if value is None:
-        return "-"
+        return '<span class="na" title="not a finite number or not measured: see the notes">n/a</span>'
     if isinstance(value, bool):
         return "yes" if value else '<span class="bad">NO</span>'
-    if isinstance(value, (int,)):
+    if isinstance(value, int):
         return str(value)
     return f"{value:.{digits}g}"
 
@@ -47,93 +55,166 @@ class _Page:
     def add(self, text: str) -> None:
         self.parts.append(text)
 
-    def image(self, rel_png: str, caption: str, link: str | None = None) -> str:
+    def embed(self, rel_png: str) -> str:
         with open(os.path.join(self.root, rel_png), "rb") as f:
-            uri = data_uri(f.read())
+            return data_uri(f.read())
+
+    def image(self, rel_png: str, caption: str, link: str | None = None) -> str:
         cap = _e(caption) + (f' (<a href="{_e(link)}">EXR</a>)' if link else "")
-        return f'<figure><img src="{uri}" alt="{_e(caption)}"><figcaption>{cap}</figcaption></figure>'
+        return (f'<figure><img src="{self.embed(rel_png)}" alt="{_e(caption)}">'
+                f'<figcaption>{cap}</figcaption></figure>')
+
+
+def _cell_text(cell: dict) -> str:
+    ratio = (f"{_e(cell['numerator'])} has {_num(cell['ratio'], 3)}x the {cell['quantity']} of "
+             f"{_e(cell['denominator'])} [{_num(cell['low'], 3)}, {_num(cell['high'], 3)}]")
+    return f"<b>{_e(cell['winner'])}</b><br><small>{ratio}</small>"
+
+
+def _verdict_section(report: dict) -> str:
+    rows = report["verdict"]
+    if not rows:
+        return "<p>No verdict: fewer than two methods ran in every scene.</p>"
+    head = ("<tr><th>scene</th><th>sampler</th><th>lighting</th><th>equal samples: winner (lowest expected MSE)</th>"
+            "<th>equal time: winner (highest efficiency)</th><th>caveats</th></tr>")
+    body = []
+    for r in rows:
+        cells = []
+        for kind in ("equal_spp", "equal_time"):
+            cells.append(f'<td class="win">{_cell_text(r[kind])}</td>')
+        lighting = "direct" if r["family"] == DIRECT else "multi-bounce"
+        body.append(f'<tr><td>{_e(r["scene"])}</td><td>{_e(r["sampler"])}</td><td>{lighting}</td>'
+                    f'{"".join(cells)}<td>{len(r["caveats"])}</td></tr>')
+    table = f'<table id="verdict">{head}{"".join(body)}</table>'
+    legend = (f"<p>The winner of each comparison is highlighted. Below it: the project's best method "
+              f"over the best of Mitsuba's own strategies in the same run (or, with no project method, "
+              f"the winner over the runner-up): MSE ratio at equal samples (below 1: the first is "
+              f"better), efficiency ratio 1/(MSE x time) at equal time (above 1: the first is better); "
+              f"in brackets the {verdict.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
+    caveats = "".join(f"<li><b>{_e(r['scene'])}, {_e(r['sampler'])}"
+                      f"{'' if r['family'] == DIRECT else ', multi-bounce'}</b>: {_e(c)}</li>"
+                      for r in rows for c in r["caveats"])
+    caveat_block = (f'<h3>Caveats</h3><ul class="note">{caveats}</ul>' if caveats
+                    else "<p>No caveats: time budgets, tails, bias tests and reference noise are all fine.</p>")
+    return table + legend + caveat_block
+
+
+HOW_TO_READ = f"""
+<h2>How to read this page</h2>
+<ul>
+<li><b>Equal samples</b> count shading rays (2 per pixel sample for every direct-lighting method).
+<b>Expected MSE</b> is each pass's MSE averaged over many independent passes (per channel, against
+the reference), so rare, very bright samples are in it; <b>pixel variance</b> is the per-pixel
+variance of one pass across the passes, shown as a false-colour map. Relative MSE is the mean of
+(x-ref)<sup>2</sup>/(ref<sup>2</sup>+0.01).</li>
+<li><b>Equal time</b>: each method renders at the spp its measured time per sample affords within the
+baseline's time per pass (median wall time of a warm pass; kernel compile time is listed apart).
+<b>Efficiency</b> = 1/(expected MSE x time per pass).</li>
+<li><b>Tails</b> (luminance): the brightest pixel of any pass, the {metrics.TAIL_PERCENTILE:g} %
+percentile of |render - reference| over every pixel of every pass, and <b>fireflies</b>: pixels above
+{metrics.FIREFLY_FACTOR:g} x their reference value + {metrics.FIREFLY_FLOOR:g} x the reference's mean.
+A method is flagged when its brightest pixel exceeds {metrics.TAIL_MAX_RATIO:g} x the baseline's, its
+percentile {metrics.TAIL_PERCENTILE_RATIO:g} x, or its firefly count the baseline's by
+{metrics.TAIL_FIREFLY_SIGMAS:g} Poisson standard deviations.</li>
+<li><b>Bias test</b>: one number per pass, its image-mean luminance; Welch's t-test of their mean
+against the reference's (whose own error, from its independent chunks, is counted). False-alarm rate
+{metrics.BIAS_ALPHA:g} per test (two-sided): an unbiased method is flagged about once in
+{round(1 / metrics.BIAS_ALPHA)} tests. A flag means the method's average image differs from the
+reference by more than noise explains; re-check it with more, independent passes
+(<code>python scripts/bias_check.py SCENE --method NAME --passes 64</code>) before calling it biased.</li>
+<li>MSE includes the reference's own noise (its mean variance is listed per scene).</li>
+</ul>
+"""
 
 
 def _metrics_table(run: dict) -> str:
-    cols = [("spp", "spp"), ("mse", "MSE"), ("rel_mse", "rel. MSE"), ("time_s", "time/pass (s)"),
-            ("efficiency", "efficiency"), ("mse_ratio_vs_baseline", "MSE / base"),
-            ("efficiency_ratio_vs_baseline", "eff. / base"), ("bias_ok", "unbiased"),
-            ("bias_fail_fraction", "pixels |z|>4"), ("bias_expected_fail_fraction", "expected"),
-            ("bias_mean_z", "mean z")]
-    head = "".join(f"<th>{c}</th>" for _, c in cols)
-    rows = [f'<tr><th>method</th><th>rays/sample</th><th>compile (s)</th><th>comparison</th>{head}</tr>']
+    cols = [("spp", "spp", lambda e: e["spp"]),
+            ("mse", "expected MSE", lambda e: e["error"]["mse"]),
+            ("pixvar", "pixel variance", lambda e: e["error"]["pixel_variance"]),
+            ("rel", "rel. MSE", lambda e: e["error"]["rel_mse"]),
+            ("time", "time/pass (s)", lambda e: e["time_s"]),
+            ("eff", "efficiency", lambda e: e["efficiency"]),
+            ("mse_b", "MSE / base", lambda e: e["mse_ratio_vs_baseline"]),
+            ("eff_b", "eff. / base", lambda e: e["efficiency_ratio_vs_baseline"]),
+            ("max", "brightest pixel", lambda e: e["tail"]["max_pixel"]),
+            ("pct", f"{metrics.TAIL_PERCENTILE:g} % |err|", lambda e: e["tail"]["abs_error_percentile"]),
+            ("ff", "fireflies", lambda e: e["tail"]["fireflies"]),
+            ("t", "bias t", lambda e: e["bias"]["t"]),
+            ("p", "bias p", lambda e: e["bias"]["p_value"]),
+            ("ok", "unbiased", lambda e: not e["bias"]["flagged"])]
+    head = "".join(f"<th>{c}</th>" for _, c, _ in cols)
+    rows = [f'<tr><th>method</th><th>rays/sample</th><th>compile (s)</th><th>comparison</th>{head}'
+            f'<th>tail vs baseline</th></tr>']
     for name, entry in run["methods"].items():
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
-            cells = "".join(
-                f"<td{' class=bad' if k == 'bias_fail_fraction' and entry[kind].get('bias_pixels_suspect') else ''}>"
-                f"{_num(entry[kind].get(k))}</td>" for k, _ in cols)
+            e = entry[kind]
+            cells = "".join(f"<td>{_num(get(e))}</td>" for _, _, get in cols)
+            worse = e["tail_worse_than_baseline"]
+            tail = f'<td class="name bad">{_e("; ".join(worse))}</td>' if worse else '<td class="name">ok</td>'
             rows.append(f'<tr><td class="name">{_e(name)}</td><td>{entry["rays_per_sample"]}</td>'
-                        f'<td>{_num(entry["compile_time_s"], 3)}</td><td class="name">{title}</td>{cells}</tr>')
+                        f'<td>{_num(entry["compile_time_s"], 3)}</td><td class="name">{title}</td>'
+                        f'{cells}{tail}</tr>')
     return "<table>" + "".join(rows) + "</table>"
+
+
+def _scene_section(page: _Page, scene: dict) -> None:
+    page.add(f"<h2>Scene {_e(scene['scene'])}</h2><p>{_e(scene['path'])}</p>")
+    for note in scene["notes"]:
+        page.add(f'<p class="note">{_e(note)}</p>')
+    refs = "".join(page.image(r["png"], f"reference ({r['integrator']}, {r['spp']} spp in {r['chunks']} "
+                              f"chunks, mean variance {_num(r['mean_variance'], 3)})", r["file"])
+                   for r in scene["references"].values())
+    page.add(f'<div class="row">{refs}</div>')
+    if scene.get("sampler_figures"):
+        page.add("<h3>Warped sample points</h3><p>Hierarchical warping of an 8-band Phong lobe "
+                 "(s = 20) alone and times this scene's environment, on the equal-area (phi, z) "
+                 "grid (square-root colour scale). From a Hammersley set the warped points stay "
+                 "stratified: the warp preserves the input's low discrepancy.</p>")
+        for fig in scene["sampler_figures"]:
+            page.add(f'<img src="{page.embed(fig["png"])}" alt="{_e(fig["caption"])}">')
+    for run in scene["runs"]:
+        rendered = (f" (rendered by Mitsuba's {_e(run['sampler_plugin'])}, film "
+                    f"{run['film_size'][0]} x {run['film_size'][1]})" if run.get("sampler_plugin") else "")
+        page.add(f"<h3>{_e(scene['scene'])}: {_e(run['sampler'])} sampler{rendered}</h3>")
+        page.add(_metrics_table(run))
+        for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
+            figs = []
+            for name, entry in run["methods"].items():
+                e = entry[kind]
+                figs.append(page.image(e["files"]["first_pass_png"],
+                                       f"{name}, {e['spp']} spp, pass MSE {_num(e['error']['mse_per_pass'][0], 3)}",
+                                       e["files"]["first_pass"]))
+            page.add(f"<h4>Renders at {title} (first pass)</h4><div class='row'>{''.join(figs)}</div>")
+        for kind, title in (("variance", "Per-pixel variance across passes (equal samples, tails included)"),
+                            ("rel_error", "Per-pixel relative squared error (equal samples)")):
+            lo, hi = run["maps"]["_scale"][kind]
+            figs = [page.image(maps[kind], name) for name, maps in run["maps"].items() if name != "_scale"]
+            page.add(f"<h4>{title}; shared log colour scale {_num(lo, 3)} .. {_num(hi, 3)} (inferno)</h4>"
+                     f"<div class='row'>{''.join(figs)}</div>")
+        if run["convergence_plot"]:
+            page.add("<h4>Convergence (one render per spp)</h4>")
+            page.add(f'<img src="{page.embed(run["convergence_plot"])}" alt="convergence">')
+        else:
+            page.add("<p>No convergence sweep with this sampler (it runs with the first sampler "
+                     "only: the others recompile their kernels for every sample count).</p>")
 
 
 def write_html(path: str, report: dict) -> None:
     """Write the report page for ``report`` (the dict saved as report.json) to ``path``."""
     page = _Page(os.path.dirname(os.path.abspath(path)))
-    settings = report["settings"]
     page.add(f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>mitsuba-shsampling comparison"
              f"</title><style>{STYLE}</style></head><body>")
     page.add("<h1>Environment-map sampling comparison</h1>")
-    page.add("<p>Equal samples count shading rays (2 per pixel sample for every direct-lighting "
-             "method). MSE and relative MSE (mean of (x-ref)<sup>2</sup>/(ref<sup>2</sup>+0.01)) are "
-             "per pass, averaged over passes; time is the median wall time of a warm pass (kernel "
-             "compile time separate); efficiency = 1/(MSE x time). The bias check compares the mean of "
-             "the passes with the reference: 'unbiased' means the image-mean z-score is within 4; the "
-             "fraction of pixel-channels with |z| &gt; 4 is shown next to its expectation for normal "
-             "pass values (red when clearly above: local bias or heavy-tailed samples). Equal time: each method renders at the spp its measured time per sample affords "
-             "within the baseline's time per pass. MSE includes the reference's own noise "
-             "(its mean variance is listed per scene).</p>")
-    page.add("<h2>Run</h2><pre>" + _e(json.dumps({
-        "machine": report["machine"], "variant": report["variant"], "versions": report["versions"],
-        "settings": settings, "total_time_s": round(report.get("total_time_s", 0.0), 1)}, indent=1))
-        + "</pre>")
+    page.add("<h2>Verdict</h2>")
+    page.add(_verdict_section(report))
+    page.add(HOW_TO_READ)
     for scene in report["scenes"]:
-        page.add(f"<h2>Scene {_e(scene['scene'])}</h2><p>{_e(scene['path'])}</p>")
-        for note in scene["notes"]:
-            page.add(f'<p class="note">{_e(note)}</p>')
-        refs = "".join(page.image(r["png"], f"reference ({r['integrator']}, {r['spp']} spp, "
-                                  f"mean variance {r['mean_variance']:.3g})", r["file"])
-                       for r in scene["references"].values())
-        page.add(f'<div class="row">{refs}</div>')
-        if scene.get("sampler_figures"):
-            page.add("<h3>Warped sample points</h3><p>Hierarchical warping of an 8-band Phong lobe "
-                     "(s = 20) alone and times this scene's environment, on the equal-area (phi, z) "
-                     "grid (square-root colour scale). From a Hammersley set the warped points stay "
-                     "stratified: the warp preserves the input's low discrepancy.</p>")
-            for fig in scene["sampler_figures"]:
-                with open(os.path.join(page.root, fig["png"]), "rb") as f:
-                    page.add(f'<img src="{data_uri(f.read())}" alt="{_e(fig["caption"])}">')
-        for run in scene["runs"]:
-            page.add(f"<h3>{_e(scene['scene'])}: {_e(run['sampler'])} sampler</h3>")
-            page.add(_metrics_table(run))
-            for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
-                figs = []
-                for name, entry in run["methods"].items():
-                    exr = entry[kind]["files"][0]
-                    figs.append(page.image(exr[:-4] + ".png",
-                                           f"{name}, {entry[kind]['spp']} spp, MSE {entry[kind]['mse']:.3g}",
-                                           exr))
-                page.add(f"<h4>Renders at {title} (first pass)</h4><div class='row'>{''.join(figs)}</div>")
-            for kind, title in (("variance", "Per-pixel variance across passes (equal samples)"),
-                                ("rel_error", "Per-pixel relative squared error (equal samples)")):
-                lo, hi = run["maps"]["_scale"][kind]
-                figs = [page.image(maps[kind], name) for name, maps in run["maps"].items()
-                        if name != "_scale"]
-                page.add(f"<h4>{title}; shared log colour scale {lo:.3g} .. {hi:.3g} (inferno)</h4>"
-                         f"<div class='row'>{''.join(figs)}</div>")
-            if run["convergence_plot"]:
-                page.add("<h4>Convergence (one render per spp)</h4>")
-                with open(os.path.join(page.root, run["convergence_plot"]), "rb") as f:
-                    page.add(f'<img src="{data_uri(f.read())}" alt="convergence">')
-            else:
-                page.add("<p>No convergence sweep with this sampler (it runs with the first sampler "
-                         "only: the others recompile their kernels for every sample count).</p>")
+        _scene_section(page, scene)
     page.add('<p>Data: <a href="report.json">report.json</a>, <a href="metrics.csv">metrics.csv</a></p>')
+    page.add("<details><summary>Settings, machine and versions</summary><pre>" + _e(json.dumps({
+        "machine": report["machine"], "variant": report["variant"], "versions": report["versions"],
+        "settings": report["settings"], "total_time_s": round(report.get("total_time_s") or 0.0, 1)},
+        indent=1)) + "</pre></details>")
     page.add("</body></html>")
     with open(path, "w") as f:
         f.write("\n".join(page.parts))

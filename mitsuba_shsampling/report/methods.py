@@ -1,7 +1,7 @@
 """The rendering methods a comparison runs: one small declarative entry each.
 
-A :class:`Method` says which integrator to load, which scene parameters it
-needs (``mis_compensation`` builds the envmap differently) and how many shading
+A :class:`Method` says which integrator to load, how the scene's envmap must be
+rebuilt for it (``mis_compensation``) and how many shading
 rays one pixel sample costs, so that equal-sample comparisons count rays
 (see /work/shared/design/evaluation.md). Methods that need a plugin this
 process cannot load (the project's ``sh_direct``/``sh_path`` before they
@@ -34,7 +34,9 @@ class Method:
     :param rays_per_sample: shading rays traced per pixel sample (per bounce for the
         multi-bounce family); equal-sample comparisons give each method
         ``spp * 2 / rays_per_sample`` samples.
-    :param scene_params: extra scene parameters (e.g. ``{"mis_compensation": True}``).
+    :param scene_params: options of the rebuilt envmap emitter (``{"mis_compensation": True}``),
+        applied by :func:`.scene_setup.with_environment`; such a method is skipped on a scene
+        without an envmap.
     :param plugin: integrator plugin type that must be loadable for the method to run.
     :param product_sampling: whether the method samples the environment with the SH product
         (only meaningful on scenes with an envmap).

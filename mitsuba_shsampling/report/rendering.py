@@ -22,6 +22,7 @@ import numpy as np
 import mitsuba as mi
 
 from .. import scenes as builtin
+from . import metrics, scene_setup
 from .methods import DIRECT, MULTI_BOUNCE, Method
 
 #: Seed offsets keep the renders of one run independent of each other.
@@ -78,17 +79,18 @@ class PassSet:
 
 
 class MethodRenderer:
-    """Renders one scene with one method; owns the method's scene and integrator.
+    """Renders one scene with one method; owns the method's scene, sensor and integrator.
 
-    :param scene_path: XML scene.
-    :param method: the method (its ``scene_params`` are applied when loading).
+    :param scene_path: XML scene (any Mitsuba scene with a supported camera, see
+        :mod:`.scene_setup`).
+    :param method: the method (its ``scene_params``, e.g. MIS compensation, rebuild the envmap).
     :param settings: ``res``, ``sampler``, ``envmap`` (or None), ``max_depth``.
     """
 
     def __init__(self, scene_path: str, method: Method, settings: dict):
         self.method = method
         self.sampler_name = settings["sampler"]
-        self.scene = load_for_settings(scene_path, settings, **method.scene_params)
+        self.scene, self.sensor = load_for_settings(scene_path, settings, **method.scene_params)
         self.integrator = method.load_integrator(settings["max_depth"])
         self.first_render_s: float | None = None
         self.compile_time_s: float | None = None
@@ -97,13 +99,13 @@ class MethodRenderer:
     def render(self, spp: int, seed: int) -> tuple[np.ndarray, float]:
         """One render: (image (H, W, C) float32, wall time in s)."""
         start = time.perf_counter()
-        image = np.array(mi.render(self.scene, integrator=self.integrator, spp=spp, seed=seed),
-                         dtype=np.float32)
+        image = np.array(mi.render(self.scene, sensor=self.sensor, integrator=self.integrator,
+                                   spp=spp, seed=seed), dtype=np.float32)
         return image, time.perf_counter() - start
 
     def actual_spp(self) -> int:
         """The sample count of the last render (samplers round some requests)."""
-        return int(self.scene.sensors()[0].sampler().sample_count())
+        return int(self.sensor.sampler().sample_count())
 
     def warm_up(self, spp: int) -> float:
         """Compile the kernels with one untimed render; returns its wall time (s).
@@ -138,15 +140,18 @@ class MethodRenderer:
         return passes
 
 
-def load_for_settings(scene_path: str, settings: dict, **scene_params) -> mi.Scene:
-    """Load ``scene_path`` at the comparison's resolution, sampler and envmap."""
-    declared = builtin.scene_parameters(scene_path)
-    kwargs = {"res": settings["res"]}
-    if "sampler" in declared:
-        kwargs["sampler"] = settings["sampler"]
-    if settings.get("envmap"):
-        kwargs["envmap"] = settings["envmap"]
-    return builtin.load_scene(scene_path, **kwargs, **scene_params)
+def load_for_settings(scene_path: str, settings: dict, mis_compensation: bool = False
+                      ) -> tuple[mi.Scene, mi.Sensor]:
+    """Load ``scene_path`` as written, with the comparison's envmap, and its camera rebuilt
+    at the comparison's resolution and sampler (see :mod:`.scene_setup`).
+
+    :returns: (scene, sensor); render with ``mi.render(scene, sensor=sensor, ...)``.
+    """
+    scene = builtin.load_scene(scene_path)
+    if settings.get("envmap") or mis_compensation:
+        scene = scene_setup.with_environment(scene, settings.get("envmap"), mis_compensation)
+    sensor = scene_setup.comparison_sensor(scene, settings["res"], settings["sampler"], 1)
+    return scene, sensor
 
 
 def reference_integrator(family: str, max_depth: int) -> dict:
@@ -154,50 +159,58 @@ def reference_integrator(family: str, max_depth: int) -> dict:
     return {"type": "path", "max_depth": 2 if family == DIRECT else max_depth}
 
 
-def reference_key(scene_path: str, settings: dict, family: str, ref_spp: int) -> str:
-    """Hash of everything the reference image depends on (files by content)."""
+def reference_key(scene_path: str, scene: mi.Scene, settings: dict, family: str, ref_spp: int) -> str:
+    """Hash of everything the reference image depends on: the scene's files and traversed
+    parameters by content (:func:`.scene_setup.content_digest`) and the render settings."""
     digest = hashlib.sha256()
-    # Included stage files live in an ``include`` folder next to the built-in scenes.
-    include_dir = os.path.join(os.path.dirname(os.path.abspath(scene_path)), "include")
-    files = [scene_path]
-    if os.path.isdir(include_dir):
-        files += [os.path.join(include_dir, f) for f in sorted(os.listdir(include_dir))
-                  if f.endswith(".xml")]
-    envmap = settings.get("envmap") or _default_envmap(scene_path)
-    if envmap and os.path.isfile(envmap):
-        files.append(envmap)
-    for path in files:
-        with open(path, "rb") as f:
-            digest.update(f.read())
+    extra = [settings["envmap"]] if settings.get("envmap") else []
+    digest.update(scene_setup.content_digest(scene_path, scene, extra).encode())
     digest.update(json.dumps({
         "integrator": reference_integrator(family, settings["max_depth"]),
-        "res": settings["res"], "ref_spp": ref_spp, "variant": mi.variant(),
-        "mitsuba": mi.__version__,
+        "res": settings["res"], "ref_spp": ref_spp, "chunks": REFERENCE_CHUNKS,
+        "variant": mi.variant(), "mitsuba": mi.__version__,
     }, sort_keys=True).encode())
     return digest.hexdigest()[:16]
 
 
-def _default_envmap(scene_path: str) -> str | None:
-    value = builtin.scene_parameters(scene_path).get("envmap")
-    if value is None:
-        return None
-    return value if os.path.isabs(value) else os.path.join(os.path.dirname(os.path.abspath(scene_path)), value)
-
-
 @dataclasses.dataclass
 class Reference:
-    """Converged image (H, W, C) and the variance of that estimate (H, W, C)."""
+    """Converged image of a scene, from :data:`REFERENCE_CHUNKS` independent chunks.
 
-    image: np.ndarray
-    variance: np.ndarray
+    :param chunks: (N, H, W, C) chunk images; their mean is ``image``.
+    :param image: (H, W, C) the reference.
+    :param variance: (H, W, C) variance of ``image`` as an estimate (chunk spread / N).
+    :param chunk_means: (N,) image-mean luminance of each chunk: the reference's own error
+        in the bias test.
+    """
+
+    chunks: np.ndarray
     spp: int
     path: str
     cached: bool
     time_s: float
 
+    @property
+    def image(self) -> np.ndarray:
+        return self.chunks.mean(axis=0)
 
-#: The reference is rendered in this many chunks: their spread estimates its own variance.
-REFERENCE_CHUNKS = 4
+    @property
+    def variance(self) -> np.ndarray:
+        return self.chunks.var(axis=0, ddof=1) / self.chunks.shape[0]
+
+    @property
+    def chunk_means(self) -> np.ndarray:
+        return metrics.image_mean_luminance(self.chunks)
+
+    @property
+    def non_finite(self) -> int:
+        """Pixel-channel values of the reference that are NaN or infinite."""
+        return int(np.count_nonzero(~np.isfinite(self.image)))
+
+
+#: The reference is rendered in this many independent chunks: their spread estimates its own
+#: error (per pixel, and of its image mean in the bias test).
+REFERENCE_CHUNKS = 8
 
 
 def render_reference(scene_path: str, settings: dict, family: str, ref_spp: int,
@@ -205,35 +218,34 @@ def render_reference(scene_path: str, settings: dict, family: str, ref_spp: int,
     """Render (or reuse from ``cache_dir``) the ``path`` reference of a scene.
 
     The image is the mean of :data:`REFERENCE_CHUNKS` independent chunks of
-    ``ref_spp / chunks`` samples (independent sampler); the variance of that mean is
-    estimated from the chunks and stored next to it, as ``<key>.exr`` and ``<key>_var.exr``.
+    ``ref_spp / chunks`` samples (independent sampler). The chunks are cached as
+    ``ref_<scene>_<key>.npz`` and their mean as ``.exr`` beside it; the key changes with
+    any referenced file, traversed parameter or setting (:func:`reference_key`).
     """
     os.makedirs(cache_dir, exist_ok=True)
-    key = reference_key(scene_path, settings, family, ref_spp)
-    stem = os.path.splitext(os.path.basename(scene_path))[0]
-    path = os.path.join(cache_dir, f"ref_{stem}_{key}.exr")
-    var_path = os.path.join(cache_dir, f"ref_{stem}_{key}_var.exr")
-    if os.path.isfile(path) and os.path.isfile(var_path):
-        return Reference(read_exr(path), read_exr(var_path), ref_spp, path, True, 0.0)
-
     ref_settings = dict(settings, sampler="independent")
-    scene = load_for_settings(scene_path, ref_settings)
+    scene, sensor = load_for_settings(scene_path, ref_settings)
+    key = reference_key(scene_path, scene, ref_settings, family, ref_spp)
+    stem = os.path.splitext(os.path.basename(scene_path))[0]
+    path = os.path.join(cache_dir, f"ref_{stem}_{key}.npz")
+    if os.path.isfile(path):
+        with np.load(path) as data:
+            return Reference(data["chunks"], int(data["spp"]), path, True, 0.0)
+
     integrator = mi.load_dict(reference_integrator(family, settings["max_depth"]))
     chunk_spp = max(1, ref_spp // REFERENCE_CHUNKS)
     start = time.perf_counter()
     chunks = []
     for i in range(REFERENCE_CHUNKS):
-        chunks.append(np.array(mi.render(scene, integrator=integrator, spp=chunk_spp,
+        chunks.append(np.array(mi.render(scene, sensor=sensor, integrator=integrator, spp=chunk_spp,
                                          seed=SEED_REFERENCE + i), dtype=np.float32))
         if progress is not None:
             progress.update(1)
     elapsed = time.perf_counter() - start
-    chunks = np.stack(chunks)
-    image = chunks.mean(axis=0)
-    variance = chunks.var(axis=0, ddof=1) / REFERENCE_CHUNKS
-    write_exr(path, image)
-    write_exr(var_path, variance)
-    return Reference(image, variance, chunk_spp * REFERENCE_CHUNKS, path, False, elapsed)
+    reference = Reference(np.stack(chunks), chunk_spp * REFERENCE_CHUNKS, path, False, elapsed)
+    np.savez(path, chunks=reference.chunks, spp=reference.spp)
+    write_exr(path[:-4] + ".exr", reference.image)
+    return reference
 
 
 def write_exr(path: str, image: np.ndarray) -> None:

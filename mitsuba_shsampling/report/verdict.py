@@ -1,0 +1,178 @@
+"""The verdict of a comparison: who wins at equal samples and at equal time, by how much, how sure.
+
+Works on the serialised report (the dict written as ``report.json``), so it can
+be recomputed from a saved report. For each scene, sampler and method family:
+
+- **equal samples**: lowest expected MSE (mean over passes of each pass's MSE);
+- **equal time**: highest efficiency 1 / (MSE x time per pass) of the equal-time renders.
+
+The factor set against the winner is always *the project's best method over the
+best of Mitsuba's own strategies* (every method that needs no plugin: ``direct``,
+``direct`` with ``mis_compensation``, envmap-only, BSDF-only, ``path``), or, when no
+project method ran, the winner over the runner-up. Its interval is a paired
+bootstrap over passes: pass k of both methods is resampled together (the passes
+are i.i.d. across k; methods share seeds, so pairing also keeps their correlation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .metrics import BIAS_ALPHA, TAIL_PERCENTILE
+
+#: Bootstrap resamples and the two-sided coverage of the interval.
+BOOTSTRAP_RESAMPLES = 2000
+INTERVAL = 0.90
+#: A baseline pass shorter than this is dominated by per-launch overhead and timer noise.
+MIN_PASS_TIME_S = 0.020
+#: Equal-time renders at this many spp or fewer are too coarse to compare.
+MIN_EQUAL_TIME_SPP = 2
+#: The reference's own noise, relative to the winner's MSE, above which ratios shrink towards 1.
+MAX_REFERENCE_NOISE = 0.1
+
+
+@dataclasses.dataclass
+class VerdictCell:
+    """One comparison kind of one verdict row.
+
+    ``ratio`` is ``numerator``'s quantity over ``denominator``'s: MSE at equal samples (< 1:
+    the numerator wins), efficiency at equal time (> 1: the numerator wins);
+    [``low``, ``high``] its bootstrap interval.
+    """
+
+    quantity: str
+    winner: str
+    winner_is_project: bool
+    numerator: str
+    denominator: str
+    ratio: float
+    low: float
+    high: float
+
+    @property
+    def decided(self) -> bool:
+        """The interval excludes 1: the data decide between numerator and denominator."""
+        return not (self.low <= 1.0 <= self.high)
+
+
+@dataclasses.dataclass
+class VerdictRow:
+    scene: str
+    sampler: str
+    family: str
+    equal_spp: VerdictCell
+    equal_time: VerdictCell
+    caveats: list[str]
+
+
+def _paired_bootstrap(statistic, a: dict, b: dict, seed: int = 0) -> tuple[float, float]:
+    """Interval of statistic(a_resampled) / statistic(b_resampled), pass indices shared."""
+    k = min(len(a["error"]["mse_per_pass"]), len(b["error"]["mse_per_pass"]))
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, k, size=(BOOTSTRAP_RESAMPLES, k))
+    ratios = np.array([statistic(a, i) / statistic(b, i) for i in idx])
+    tail = (1 - INTERVAL) / 2
+    return float(np.quantile(ratios, tail)), float(np.quantile(ratios, 1 - tail))
+
+
+def _mse(entry: dict, idx=None) -> float:
+    values = np.asarray(entry["error"]["mse_per_pass"])
+    return float(values.mean() if idx is None else values[idx].mean())
+
+
+def _efficiency(entry: dict, idx=None) -> float:
+    times = np.asarray(entry["times_s"])
+    time_s = float(np.median(times if idx is None else times[idx]))
+    denom = _mse(entry, idx) * time_s
+    return 1.0 / denom if denom > 0 else float("inf")
+
+
+def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str]) -> VerdictCell:
+    entries = {n: results[n][kind] for n in project + mitsuba}
+    if kind == "equal_spp":
+        quantity, statistic = "MSE", _mse
+        order = sorted(entries, key=lambda n: _mse(entries[n]))
+        best_of = lambda names: min(names, key=lambda n: _mse(entries[n]))  # noqa: E731
+    else:
+        quantity, statistic = "efficiency", _efficiency
+        order = sorted(entries, key=lambda n: -_efficiency(entries[n]))
+        best_of = lambda names: max(names, key=lambda n: _efficiency(entries[n]))  # noqa: E731
+    winner = order[0]
+    if project and mitsuba:
+        numerator, denominator = best_of(project), best_of(mitsuba)
+    else:
+        numerator, denominator = winner, order[1] if len(order) > 1 else winner
+    a, b = entries[numerator], entries[denominator]
+    low, high = _paired_bootstrap(statistic, a, b)
+    return VerdictCell(quantity=quantity, winner=winner, winner_is_project=winner in project,
+                       numerator=numerator, denominator=denominator,
+                       ratio=statistic(a) / statistic(b), low=low, high=high)
+
+
+def _caveats(scene: dict, run: dict, names: list[str], baseline: str) -> list[str]:
+    results = run["methods"]
+    notes = []
+    base_time = results[baseline]["equal_spp"]["time_s"]
+    if base_time < MIN_PASS_TIME_S:
+        notes.append(f"time budget too small to be meaningful: a {baseline} pass takes "
+                     f"{1e3 * base_time:.1f} ms (per-launch overhead and timer noise weigh on every "
+                     f"time; raise --res or --spp)")
+    spps = {n: results[n]["equal_time"]["spp"] for n in names}
+    if min(spps.values()) <= MIN_EQUAL_TIME_SPP:
+        listing = ", ".join(f"{n} {s}" for n, s in spps.items())
+        notes.append(f"equal-time spp too coarse to compare ({listing}): raise --spp")
+    kinds = (("equal_spp", "equal samples"), ("equal_time", "equal time"))
+    heavy = [n for n in names if any(results[n][k]["tail_worse_than_baseline"] for k, _ in kinds)]
+    if heavy:
+        passes = len(results[names[0]]["equal_spp"]["times_s"])
+        notes.append(f"heavy tails: {', '.join(heavy)} {'is' if len(heavy) == 1 else 'are'} worse than "
+                     f"{baseline} in the brightest pixel, the {TAIL_PERCENTILE:g} % error or the firefly "
+                     f"count (the scene's table says which); rare bright samples dominate such an "
+                     f"error, so it may be larger than {passes} passes show")
+    for n in names:
+        flagged = [(title, results[n][k]["bias"]["p_value"]) for k, title in kinds if results[n][k]["bias"]["flagged"]]
+        if flagged:
+            where = ", ".join(f"{title} (p = {p:.2g})" for title, p in flagged)
+            notes.append(
+                f"bias flag: {n} at {where}. Its average image differs from the reference by more than "
+                f"noise explains: a bias, samples so heavy-tailed that the passes missed the rare bright "
+                f"ones, or chance (probability {BIAS_ALPHA:g} per test for an unbiased method). Re-check "
+                f"with independent seeds and more passes: python scripts/bias_check.py {scene['path']} "
+                f"--method {n} --passes 64")
+        bad = sum(results[n][k]["error"]["non_finite"] for k, _ in kinds)
+        if bad:
+            notes.append(f"{n} rendered {bad} non-finite pixel values (NaN or infinite); they are left "
+                         f"out of its statistics")
+    return notes
+
+
+def verdict(report: dict, project_methods: set[str]) -> list[VerdictRow]:
+    """One row per scene x sampler x method family of ``report`` (the report.json dict)."""
+    rows = []
+    for scene in report["scenes"]:
+        for run in scene["runs"]:
+            results = run["methods"]
+            for family in dict.fromkeys(r["family"] for r in results.values()):
+                names = [n for n, r in results.items() if r["family"] == family]
+                project = [n for n in names if n in project_methods]
+                mitsuba = [n for n in names if n not in project_methods]
+                if len(names) < 2:
+                    continue
+                baseline = results[names[0]]["equal_time"]["budget_method"]
+                caveats = _caveats(scene, run, names, baseline)
+                ref = scene["references"].get(family)
+                cell_spp = _cell(results, "equal_spp", project, mitsuba)
+                cell_time = _cell(results, "equal_time", project, mitsuba)
+                winner_mse = results[cell_spp.winner]["equal_spp"]["error"]["mse"]
+                if ref and winner_mse > 0 and ref["mean_variance"] > MAX_REFERENCE_NOISE * winner_mse:
+                    caveats.append(f"the reference's own noise is {ref['mean_variance'] / winner_mse:.0%} "
+                                   f"of the winner's MSE: every MSE ratio is pulled towards 1 (raise --ref-spp)")
+                for cell, title in ((cell_spp, "equal samples"), (cell_time, "equal time")):
+                    if not cell.decided:
+                        caveats.append(f"at {title} the {INTERVAL:.0%} interval of {cell.numerator} "
+                                       f"vs {cell.denominator} contains 1: no clear winner between them")
+                rows.append(VerdictRow(scene=scene["scene"], sampler=run["sampler"], family=family,
+                                       equal_spp=cell_spp, equal_time=cell_time, caveats=caveats))
+    return rows

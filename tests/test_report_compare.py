@@ -1,0 +1,224 @@
+"""``compare`` on scenes written without this project in mind: any camera, content-keyed cache, verdict, NaN texels."""
+
+import json
+import os
+import re
+
+import numpy as np
+import pytest
+
+import mitsuba_shsampling  # noqa: F401  (LLVM backend check)
+import mitsuba as mi
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling import cli, scenes  # noqa: E402
+from mitsuba_shsampling.report import scene_setup  # noqa: E402
+from mitsuba_shsampling.scenes import SceneError  # noqa: E402
+
+#: A plain Mitsuba 3 scene: no <default> at all, its own sampler and a 4:3 film; a textured
+#: diffuse ground and a glossy sphere under a small envmap, all files next to it.
+PLAIN_SCENE = """<scene version="3.0.0">
+    <integrator type="path"/>
+    <sensor type="perspective">
+        <float name="fov" value="35"/>
+        <transform name="to_world"><lookat origin="0, 1.5, 6" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <sampler type="stratified"><integer name="sample_count" value="9"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="400"/><integer name="height" value="300"/></film>
+    </sensor>
+    <emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>
+    <shape type="sphere">
+        <bsdf type="roughconductor"><float name="alpha" value="0.2"/></bsdf>
+    </shape>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="-90"/><scale value="8"/><translate y="-1"/></transform>
+        <bsdf type="diffuse">
+            <texture type="bitmap" name="reflectance"><string name="filename" value="{texture}"/></texture>
+        </bsdf>
+    </shape>
+</scene>
+"""
+
+#: Direct light from a small, bright area light only: BSDF sampling rarely finds it.
+SMALL_LIGHT_SCENE = """<scene version="3.0.0">
+    <sensor type="perspective">
+        <float name="fov" value="40"/>
+        <transform name="to_world"><lookat origin="0, 3, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+    </sensor>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="-90"/><scale value="4"/></transform>
+        <bsdf type="diffuse"/>
+    </shape>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="90"/><scale value="0.05"/><translate y="2"/></transform>
+        <emitter type="area"><rgb name="radiance" value="4000"/></emitter>
+    </shape>
+</scene>
+"""
+
+
+def write_image(path, image):
+    mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32)).write(str(path))
+
+
+def sky(height=16, width=32):
+    v = np.linspace(0, 1, height)[:, None, None]
+    return np.broadcast_to(0.2 + 2.0 * (1 - v), (height, width, 3)).copy()
+
+
+@pytest.fixture
+def plain_scene(tmp_path):
+    write_image(tmp_path / "sky.exr", sky())
+    write_image(tmp_path / "checker.exr", np.indices((8, 8)).sum(axis=0)[..., None].repeat(3, -1) % 2 * 0.6 + 0.2)
+    (tmp_path / "scene.xml").write_text(PLAIN_SCENE.format(texture="checker.exr"))
+    return tmp_path
+
+
+def compare(folder, scene, out, *extra, methods="direct", passes="4"):
+    """Run ``compare`` from ``folder`` with a relative scene path; returns the report dict."""
+    cwd = os.getcwd()
+    os.chdir(folder)
+    try:
+        code = cli.main(["compare", scene, "--out", str(out), "--res", "16", "--spp", "2",
+                         "--passes", passes, "--ref-spp", "32", "--methods", methods,
+                         "--convergence-max-spp", "0", "--cache-dir", str(folder / "cache"),
+                         "--no-progress", *extra])
+    finally:
+        os.chdir(cwd)
+    assert code == 0
+    return json.loads((out / "report.json").read_text())
+
+
+def test_a_scene_without_any_defaults_renders_with_each_requested_sampler_at_the_requested_size(plain_scene):
+    report = compare(plain_scene, "scene.xml", plain_scene / "out", "--sampler", "independent,multijitter",
+                     methods="direct,direct_misc")
+    runs = report["scenes"][0]["runs"]
+    assert [r["sampler"] for r in runs] == ["independent", "multijitter"]
+    assert [r["sampler_plugin"] for r in runs] == ["IndependentSampler", "MultijitterSampler"]
+    for run in runs:
+        assert run["film_size"] == [16, 12]  # --res is the width; the scene's 4:3 aspect is kept
+        assert set(run["methods"]) == {"direct", "direct_misc"}  # the envmap was rebuilt compensated
+        first = mi.Bitmap(str(plain_scene / "out" / run["methods"]["direct"]["equal_spp"]["files"]["first_pass"]))
+        assert (first.width(), first.height()) == (16, 12)
+    # The multijitter passes render 2 spp, not the scene's own stratified 9.
+    assert runs[1]["methods"]["direct"]["equal_spp"]["spp"] == 2
+
+
+def test_editing_a_referenced_texture_never_reuses_the_old_reference(plain_scene):
+    first = compare(plain_scene, "scene.xml", plain_scene / "a")["scenes"][0]["references"]["direct"]
+    again = compare(plain_scene, "scene.xml", plain_scene / "b")["scenes"][0]["references"]["direct"]
+    assert not first["cached"] and again["cached"] and again["cache_file"] == first["cache_file"]
+
+    write_image(plain_scene / "checker.exr", np.full((8, 8, 3), 0.9))  # same name, new texels
+    edited = compare(plain_scene, "scene.xml", plain_scene / "c")["scenes"][0]["references"]["direct"]
+    assert not edited["cached"] and edited["cache_file"] != first["cache_file"]
+
+    # A referenced file the loaded scene does not expose as a parameter: the XML text.
+    xml = (plain_scene / "scene.xml").read_text()
+    (plain_scene / "scene.xml").write_text(xml.replace('value="0.2"/></bsdf>', 'value="0.3"/></bsdf>'))
+    alpha = compare(plain_scene, "scene.xml", plain_scene / "d")["scenes"][0]["references"]["direct"]
+    assert not alpha["cached"] and alpha["cache_file"] not in (first["cache_file"], edited["cache_file"])
+
+
+def test_verdict_names_direct_the_clear_winner_over_bsdf_sampling_of_a_small_light(tmp_path):
+    (tmp_path / "small_light.xml").write_text(SMALL_LIGHT_SCENE)
+    report = compare(tmp_path, "small_light.xml", tmp_path / "out", "--sampler", "independent",
+                     methods="direct,bsdf_only", passes="16")
+    (row,) = report["verdict"]
+    assert row["scene"] == "small_light" and row["sampler"] == "independent"
+    spp, time_ = row["equal_spp"], row["equal_time"]
+    assert spp["winner"] == time_["winner"] == "direct"
+    assert (spp["numerator"], spp["denominator"]) == ("direct", "bsdf_only")
+    assert spp["quantity"] == "MSE" and spp["high"] < 0.2  # far lower MSE, and the interval says so
+    assert time_["quantity"] == "efficiency" and time_["low"] > 5
+    assert spp["low"] <= spp["ratio"] <= spp["high"] and time_["low"] <= time_["ratio"] <= time_["high"]
+    page = (tmp_path / "out" / "index.html").read_text()
+    verdict_table = page[page.index('<table id="verdict">'):]
+    verdict_table = verdict_table[:verdict_table.index("</table>")]
+    assert verdict_table.count('<td class="win"><b>direct</b>') == 2
+    assert page.index('id="verdict"') < page.index("<details>")  # verdict on top, settings at the bottom
+
+
+def test_a_non_finite_texel_never_prints_nan_and_the_report_says_why(tmp_path):
+    texels = sky()
+    texels[5, 7] = np.nan
+    write_image(tmp_path / "sky.exr", texels)
+    write_image(tmp_path / "checker.exr", np.full((4, 4, 3), 0.5))
+    (tmp_path / "scene.xml").write_text(PLAIN_SCENE.format(texture="checker.exr"))
+    report = compare(tmp_path, "scene.xml", tmp_path / "out", "--sampler", "independent",
+                     methods="direct,env_only")
+    json.loads((tmp_path / "out" / "report.json").read_text(),
+               parse_constant=lambda c: pytest.fail(f"report.json holds {c}"))
+    notes = report["scenes"][0]["notes"]
+    assert any("non-finite texel" in n for n in notes)
+    page = re.sub(r'data:image/png;base64,[^"]+', "", (tmp_path / "out" / "index.html").read_text())
+    assert not re.search(r"\b(nan|inf)\b", page)  # how Python prints a non-finite number
+    for entry in report["scenes"][0]["runs"][0]["methods"].values():
+        for kind in ("equal_spp", "equal_time"):
+            error = entry[kind]["error"]
+            # Either a finite number, or its non-finite pixels are counted (and noted on the page).
+            assert error["mse"] is not None or error["non_finite"] > 0
+            if error["non_finite"]:
+                assert "non-finite pixel values" in page
+
+
+def test_the_rebuilt_camera_renders_exactly_what_the_scenes_own_camera_renders():
+    scene = scenes.load_scene(scenes.builtin_scenes()["sphere_ggx010"], res=16, sampler="independent")
+    sensor = scene_setup.comparison_sensor(scene, 16, "independent", 4)
+    integrator = mi.load_dict({"type": "direct"})
+    own = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
+    rebuilt = np.array(mi.render(scene, sensor=sensor, integrator=integrator, spp=4, seed=3))
+    assert np.allclose(own, rebuilt, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("camera, kept", [
+    ({"type": "thinlens", "fov": 30, "aperture_radius": 0.05, "focus_distance": 4.0},
+     {"aperture_radius": 0.05, "focus_distance": 4.0, "x_fov": 30.0}),
+    ({"type": "orthographic"}, {}),
+    ({"type": "perspective", "fov": 50, "fov_axis": "y", "principal_point_offset_x": 0.1},
+     {"principal_point_offset_x": 0.1}),
+])
+def test_the_rebuilt_camera_keeps_the_lens_pose_and_aspect_of_the_scenes_camera(camera, kept):
+    pose = mi.ScalarTransform4f().look_at(origin=[1, 2, 5], target=[0, 0, 0], up=[0, 1, 0])
+    scene = mi.load_dict({"type": "scene", "sensor": dict(camera, to_world=pose, near_clip=0.5,
+                                                           film={"type": "hdrfilm", "width": 60, "height": 30})})
+    original = mi.traverse(scene.sensors()[0])
+    sensor = scene_setup.comparison_sensor(scene, 20, "multijitter", 4)
+    params = mi.traverse(sensor)
+    assert sensor.class_name() == scene.sensors()[0].class_name()
+    assert sensor.sampler().class_name() == "MultijitterSampler"
+    assert list(sensor.film().size()) == [20, 10]
+    assert np.allclose(np.array(params["to_world"].matrix), np.array(original["to_world"].matrix), atol=1e-5)
+    assert np.ravel(params["near_clip"])[0] == pytest.approx(0.5)
+    for name in kept:
+        assert np.allclose(np.array(params[name]), np.array(original[name]), rtol=1e-5), name
+
+
+def test_a_camera_compare_cannot_rebuild_is_refused_with_a_clear_message():
+    scene = mi.load_dict({"type": "scene", "sensor": {"type": "radiancemeter",
+                                                       "film": {"type": "hdrfilm", "width": 1, "height": 1}}})
+    with pytest.raises(SceneError, match="perspective, thin-lens and orthographic"):
+        scene_setup.comparison_sensor(scene, 16, "independent", 1)
+
+
+def test_rebuilding_the_envmap_keeps_every_other_emitter_shape_and_the_image():
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at(
+            origin=[0, 2, 6], target=[0, 0, 0], up=[0, 1, 0]), "film": {"type": "hdrfilm", "width": 16, "height": 16}},
+        "env": {"type": "envmap", "bitmap": mi.Bitmap(sky().astype(np.float32)), "scale": 0.5,
+                "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], 40)},
+        "sphere": {"type": "sphere", "bsdf": {"type": "roughconductor", "alpha": 0.3}},
+        "light": {"type": "rectangle", "emitter": {"type": "area", "radiance": 5.0},
+                  "to_world": mi.ScalarTransform4f().translate([0, 3, 0]).rotate([1, 0, 0], 90)},
+        "point": {"type": "point", "position": [2, 2, 2], "intensity": 10.0},
+    })
+    rebuilt = scene_setup.with_environment(scene)
+    assert len(rebuilt.emitters()) == len(scene.emitters()) == 3
+    assert len(rebuilt.shapes()) == len(scene.shapes())
+    integrator = mi.load_dict({"type": "direct"})
+    own, again = (np.array(mi.render(s, integrator=integrator, spp=8, seed=5)) for s in (scene, rebuilt))
+    assert np.allclose(own, again, rtol=1e-4, atol=1e-6)
+    compensated = scene_setup.with_environment(scene, mis_compensation=True)
+    assert not np.allclose(own, np.array(mi.render(compensated, integrator=integrator, spp=8, seed=5)))
