@@ -246,3 +246,11 @@ def test_brightest_pixel_over_ten_million_samples_is_no_firefly():
         assert np.all(np.isfinite(image))
         brightest[name] = float(np.max(np.tensordot(image, [0.2126, 0.7152, 0.0722], axes=([2], [0]))))
     assert brightest["sh_direct"] <= 3.0 * brightest["direct"], brightest
+
+
+def test_giving_every_sample_to_the_product_where_the_lobe_allows_is_unbiased():
+    """product_allocation: rough and diffuse lanes draw only product samples."""
+    scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "blend", "beckmann")},
+                       area_light=True)
+    sh = mi.load_dict({"type": "sh_direct", "max_bands": 5, "product_allocation": True})
+    assert_unbiased(scene, sh, mi.load_dict({"type": "path", "max_depth": 2}))

@@ -16,6 +16,7 @@ import mitsuba as mi
 
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
+from ..lobes.scene_lobes import DIFFUSE_BANDS
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, ProductWarp
 
 
@@ -103,14 +104,33 @@ class ProductEnvironment:
         no_delta = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
         return use_product & no_delta & self.lobes.represents_exactly(si, use_product)
 
-    def sample_product(self, coeffs, u: mi.Point2f, plain: mi.Bool):
+    def is_diffuse(self, si, product_only: mi.Bool):
+        """Per lane, among ``product_only`` lanes: the lobe is diffuse
+        (:meth:`SceneLobes.is_diffuse`); False where no product runs."""
+        if not self.active:
+            return False
+        return product_only & self.lobes.is_diffuse(si, product_only)
+
+    def sample_product(self, coeffs, u: mi.Point2f, plain, diffuse=False):
         """(direction, exact pdf) of one product sample: from :attr:`warp_plain`
-        in ``plain`` lanes, from :attr:`warp` in the others. A symbolic branch,
-        so a SIMD packet runs only the walk its lanes need."""
-        if self.warp_plain is self.warp or plain is False:
+        in ``plain`` lanes, from :attr:`warp` in the others; ``diffuse`` lanes
+        (glossy part minor, a subset of ``plain``) walk with the
+        :data:`~mitsuba_shsampling.lobes.scene_lobes.DIFFUSE_BANDS` bands that
+        describe them, at a fraction of the cost. Symbolic branches, so a SIMD
+        packet runs only the walk its lanes need."""
+        if plain is False:
             return self.warp.sample(coeffs, u)
-        return dr.if_stmt(args=(coeffs, u), cond=plain,
-                          true_fn=lambda c, v: self.warp_plain.sample(c, v),
+
+        def plain_sample(c, v):
+            if diffuse is False or len(c) <= DIFFUSE_BANDS**2:
+                return self.warp_plain.sample(c, v)
+            return dr.if_stmt(args=(c, v), cond=diffuse,
+                              true_fn=lambda c3, w: self.warp_plain.sample(c3[:DIFFUSE_BANDS**2], w),
+                              false_fn=lambda c3, w: self.warp_plain.sample(c3, w))
+
+        if self.warp_plain is self.warp:
+            return plain_sample(coeffs, u)
+        return dr.if_stmt(args=(coeffs, u), cond=plain, true_fn=plain_sample,
                           false_fn=lambda c, v: self.warp.sample(c, v))
 
     def mis_density(self, coeffs):
@@ -136,7 +156,7 @@ class ProductEnvironment:
         return dr.select(use_product & self.is_environment(emitter), product_pdf, emitter_pdf)
 
     def product_nee(self, scene, u, si, bsdf, ctx, coeffs, mis_density, use_product, product_only,
-                    frac_e, frac_b):
+                    frac_e, frac_b, diffuse=False):
         """One product sample of the environment (BSDF value x radiance / pdf).
 
         In ``product_only`` lanes (:meth:`product_carries_all`) it is one of
@@ -145,7 +165,7 @@ class ProductEnvironment:
         strategies' sample-count fractions."""
         if not self.active:
             return mi.Spectrum(0.0)
-        d, pdf_p = self.sample_product(coeffs, u, product_only)
+        d, pdf_p = self.sample_product(coeffs, u, product_only, diffuse)
         act = use_product & (pdf_p > 0)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
         act &= ~scene.ray_test(si.spawn_ray(d), act)
