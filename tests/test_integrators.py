@@ -188,7 +188,6 @@ def test_integrators_load_from_xml_strings():
     ({"type": "sh_direct", "sh_depth": 20}, "sh_depth"),
     ({"type": "sh_direct", "sh_depth": 0}, "sh_depth"),
     ({"type": "sh_direct", "emitter_samples": 0, "bsdf_samples": 0}, "not both 0"),
-    ({"type": "sh_path", "max_depth": 0}, "max_depth"),
 ])
 def test_bad_parameters_raise_clear_errors(props, message):
     with pytest.raises(Exception, match=message):

@@ -5,10 +5,11 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .environment import SceneCache, check_variant, mis_weight
-from .sh_direct import read_sh_properties
+from .environment import SceneCache, mis_weight
+from .options import PathOptions, document_parameters
 
 
+@document_parameters(PathOptions)
 class SHPathIntegrator(mi.SamplingIntegrator):
     r"""
     .. _integrator-sh_path:
@@ -18,32 +19,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
 
     .. pluginparameters::
 
-     * - max_depth
-       - |int|
-       - Longest path (-1: unbounded). 2 gives direct illumination. (Default: -1)
-     * - rr_depth
-       - |int|
-       - Depth at which Russian roulette starts. (Default: 5)
-     * - hide_emitters
-       - |bool|
-       - Hide directly visible emitters. (Default: false)
-     * - max_bands
-       - |int|
-       - Cap on the SH band count of the lobe proxies (3..32). (Default: 8)
-     * - sh_depth
-       - |int|
-       - Levels of the product hierarchy with analytic SH integrals (-1: automatic). (Default: 3)
-     * - mis_compensation
-       - |bool|
-       - Product-sample against the environment minus its mean radiance
-         (clamped at 0), leaving the smooth part to BSDF sampling, as
-         Mitsuba's ``envmap`` option of the same name does; BSDF sampling,
-         which continues every path, covers the directions it leaves out.
-         (Default: true)
-     * - defensive_share
-       - |float|
-       - Share of the environment's own distribution in the product
-         strategy (see :monosp:`sh_direct`). (Default: 0.1)
+    .. The rows are generated from integrators/options.py (PathOptions).
 
     Mitsuba's :monosp:`path` with one change: at every vertex whose BSDF has a
     smooth lobe, next-event estimation towards the environment map draws its
@@ -69,15 +45,12 @@ class SHPathIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        check_variant()
-        self.max_depth = props.get("max_depth", -1)
-        self.rr_depth = props.get("rr_depth", 5)
-        self.hide_emitters = props.get("hide_emitters", False)
-        if self.max_depth < -1 or self.max_depth == 0:
-            raise ValueError("sh_path: 'max_depth' must be -1 (unbounded) or >= 1")
-        if self.rr_depth < 1:
-            raise ValueError("sh_path: 'rr_depth' must be >= 1")
-        self.scenes = SceneCache(*read_sh_properties(props, "sh_path"))
+        self.options = PathOptions.from_properties(props)
+        self.max_depth = self.options.max_depth
+        self.rr_depth = self.options.rr_depth
+        self.hide_emitters = self.options.hide_emitters
+        self.scenes = SceneCache(self.options.max_bands, self.options.warp_sh_depth,
+                                 self.options.mis_compensation, self.options.defensive_share)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass
@@ -85,6 +58,9 @@ class SHPathIntegrator(mi.SamplingIntegrator):
 
     @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        # As Mitsuba's path: max_depth 0 renders nothing (not even emitters, alpha 0).
+        if dr.hint(self.max_depth == 0, mode="scalar"):
+            return mi.Spectrum(0.0), mi.Bool(False), []
         env = self.scenes.get(scene)
         max_depth = self.max_depth if self.max_depth >= 0 else 0xFFFFFFFF
         ctx = mi.BSDFContext()
@@ -156,4 +132,4 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         return L, valid_ray, []
 
     def to_string(self):
-        return f"SHPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
+        return f"SHPathIntegrator[{self.options}]"

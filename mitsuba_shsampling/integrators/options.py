@@ -1,0 +1,222 @@
+"""Plugin parameters of ``sh_direct`` and ``sh_path``: defaults, limits, validation, documentation.
+
+One frozen dataclass per plugin (:class:`DirectOptions`, :class:`PathOptions`,
+both extending :class:`ProductOptions`, the options of the product strategy).
+Each field carries its documentation; the plugins' RST parameter tables are
+generated from it (:func:`document_parameters`), so code, checks and docs
+cannot disagree. Limits come from the modules that impose them: the SH basis
+(:data:`~mitsuba_shsampling.sh.basis.MAX_ORDER`), the lobe proxies
+(:data:`~mitsuba_shsampling.lobes.scene_lobes.DIFFUSE_BANDS`), the warp
+hierarchy (:data:`~mitsuba_shsampling.warp.hierarchy.MAX_DEPTH`) and the
+product warp (:func:`~mitsuba_shsampling.warp.product.check_defensive_share`).
+
+Conventions follow Mitsuba's own integrators: integer and boolean parameters
+must have exactly that type (an ``<integer>`` in XML, a Python ``int`` in a
+dict; ``"8"``, ``8.0`` or ``True`` for an integer are errors; a float
+parameter also takes an integer, as Mitsuba's do), ``max_depth``
+is -1 (infinite) or >= 0 (0 renders nothing, 1 only directly visible
+emitters), ``rr_depth`` > 0. Unknown parameter names are reported by
+Mitsuba's parser ("unreferenced property"), as for any plugin.
+
+``compare`` and other callers validate values the same way, e.g.
+``PathOptions(max_depth=args.max_depth)`` raises :class:`OptionError`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from typing import ClassVar
+
+from ..lobes.scene_lobes import DIFFUSE_BANDS
+from ..sh.basis import MAX_ORDER
+from ..warp.hierarchy import MAX_DEPTH
+from ..warp.product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share
+
+#: Band counts the lobe proxies support: the diffuse part needs 3 bands, the SH
+#: basis goes to l = MAX_ORDER.
+MIN_BANDS, MAX_BANDS = DIFFUSE_BANDS, MAX_ORDER + 1
+
+# Defaults chosen from end-to-end measurements (96x96, gold GGX sphere on a
+# plane, immenstadter_horn and studio maps, alpha 0.1 and 0.3): 8 bands with
+# analytic SH weights on the top 3 levels had the lowest MSE per unit time;
+# 10-20 bands and deeper SH levels cost more time than they saved variance,
+# 2 levels lost most of the variance reduction. See README "Measured results".
+DEFAULT_MAX_BANDS = 8
+DEFAULT_SH_DEPTH = 3
+
+
+class OptionError(ValueError):
+    """A plugin parameter of the wrong type or out of range; the message is one line
+    naming the plugin, the parameter, what it must be and what it got."""
+
+
+def _doc(text: str) -> dict:
+    return {"doc": text}
+
+
+_ARTICLES = {int: "an integer", bool: "a boolean", float: "a float"}
+#: Mitsuba's names of property types, for messages.
+_TYPE_NAMES = {bool: "boolean", int: "integer", float: "float", str: "string"}
+
+
+@dataclasses.dataclass(frozen=True)
+class ProductOptions:
+    """Options of the SH product strategy, common to both plugins."""
+
+    #: Plugin name used in messages (set by the subclasses).
+    PLUGIN: ClassVar[str] = "sh_*"
+
+    hide_emitters: bool = dataclasses.field(default=False, metadata=_doc(
+        "Hide directly visible emitters."))
+    max_bands: int = dataclasses.field(default=DEFAULT_MAX_BANDS, metadata=_doc(
+        f"Cap on the SH band count of the lobe proxies ({MIN_BANDS}..{MAX_BANDS}); the scene's "
+        "band count follows its sharpest lobe, and sharper lobes are widened to what the cap "
+        "represents (BSDF sampling under MIS takes over)."))
+    sh_depth: int = dataclasses.field(default=DEFAULT_SH_DEPTH, metadata=_doc(
+        f"Levels of the product hierarchy that use analytic SH cell integrals (1..{MAX_DEPTH}, "
+        "or -1: from the band count, 2^k >= 4 n); below them the lobe is taken as constant and "
+        "only the environment is refined."))
+    mis_compensation: bool = dataclasses.field(default=True, metadata=_doc(
+        "Product-sample against the environment minus its mean radiance (clamped at 0), "
+        "leaving the smooth part to BSDF sampling, as Mitsuba's ``envmap`` option of the "
+        "same name does. It leaves holes that only BSDF sampling covers, so ``sh_direct`` "
+        "switches it off (with a warning) when ``bsdf_samples`` is 0; in ``sh_path`` the BSDF "
+        "sample that continues every path covers them."))
+    defensive_share: float = dataclasses.field(default=DEFAULT_DEFENSIVE_SHARE, metadata=_doc(
+        "Share e of the environment's own distribution in the product strategy, which samples "
+        "(1 - e) product + e environment. It keeps the strategy's pdf positive wherever the map "
+        "is lit, so a clamped or inexact lobe never leaves lit directions to BSDF sampling alone "
+        "(whose rare hits on a bright light are fireflies). In (0, 1]."))
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            # Exact types (that of the default): bool is a subclass of int, and True
+            # for an integer is a mistake.
+            expected = type(field.default)
+            if expected is float and type(value) is int:
+                object.__setattr__(self, field.name, float(value))
+            elif type(value) is not expected:
+                self._fail(field.name, f"must be {_ARTICLES[expected]}", value)
+        self._check_ranges()
+
+    def _check_ranges(self) -> None:
+        if not MIN_BANDS <= self.max_bands <= MAX_BANDS:
+            self._fail("max_bands", f"must be in [{MIN_BANDS}, {MAX_BANDS}]", self.max_bands)
+        if not (self.sh_depth == -1 or 1 <= self.sh_depth <= MAX_DEPTH):
+            self._fail("sh_depth", f"must be in [1, {MAX_DEPTH}] or -1 (automatic)", self.sh_depth)
+        try:
+            check_defensive_share(self.defensive_share)
+        except ValueError:
+            self._fail("defensive_share", "must be in (0, 1]", self.defensive_share)
+
+    def _fail(self, name: str, requirement: str, value) -> None:
+        kind = _TYPE_NAMES.get(type(value), type(value).__name__)
+        raise OptionError(f"{self.PLUGIN}: parameter '{name}' {requirement}, got {kind} {value!r}")
+
+    @property
+    def warp_sh_depth(self) -> int | None:
+        """``sh_depth`` as :class:`~mitsuba_shsampling.warp.product.ProductWarp` takes it
+        (None: automatic)."""
+        return None if self.sh_depth == -1 else self.sh_depth
+
+    @classmethod
+    def from_properties(cls, props):
+        """Options from a plugin's ``mi.Properties``: the parameters it sets, defaults
+        for the others. Reading a property marks it as used, so Mitsuba still reports
+        misspelled names."""
+        names = [f.name for f in dataclasses.fields(cls)]
+        return cls(**{name: props.get(name) for name in names if name in props})
+
+
+@dataclasses.dataclass(frozen=True)
+class DirectOptions(ProductOptions):
+    """Parameters of ``sh_direct``."""
+
+    PLUGIN: ClassVar[str] = "sh_direct"
+
+    emitter_samples: int = dataclasses.field(default=1, metadata=_doc(
+        "Environment samples per shading point, drawn from the product of the BSDF lobe "
+        "(in spherical harmonics, rotated per shading point) and the environment map; also "
+        "the number of Mitsuba emitter samples for any other emitters."))
+    bsdf_samples: int = dataclasses.field(default=1, metadata=_doc(
+        "BSDF samples per shading point."))
+    product_allocation: bool = dataclasses.field(default=False, metadata=_doc(
+        "Give every sample of a shading point to the product where it follows the integrand "
+        "closely: the lobe proxy needs no widening to fit ``max_bands`` and the BSDF has no Dirac "
+        "part (diffuse and rough lobes). Those lanes draw ``emitter_samples + bsdf_samples`` "
+        "product samples from the uncompensated map, equally weighted, and no BSDF sample; the "
+        "others combine product and BSDF samples under MIS. Measured (512 px, 4 spp, same seeds, "
+        "efficiency against this integrator without it): +68 % on a GGX 0.3 sphere under the "
+        "studio map, +10 % on a diffuse sphere under the sun-and-sky map, -20 % on the default "
+        "scene (GGX 0.1 sphere on a diffuse floor), whose error is the sphere's and whose floor "
+        "then pays a second product walk, and the symbolic branch about 10 % on its own."))
+
+    def _check_ranges(self) -> None:
+        super()._check_ranges()
+        for name in ("emitter_samples", "bsdf_samples"):
+            if getattr(self, name) < 0:
+                self._fail(name, "must be >= 0", getattr(self, name))
+        if self.emitter_samples + self.bsdf_samples == 0:
+            raise OptionError(f"{self.PLUGIN}: parameters 'emitter_samples' and 'bsdf_samples' "
+                              "must be >= 0 and not both 0, got 0 and 0")
+        if self.mis_compensation and self.bsdf_samples == 0:
+            # The compensated environment is 0 wherever the map is darker than
+            # its mean: without BSDF samples nothing would reach those directions.
+            warnings.warn(f"{self.PLUGIN}: 'mis_compensation' is switched off because 'bsdf_samples' "
+                          "is 0 (only BSDF sampling covers the directions it leaves out)", stacklevel=5)
+            object.__setattr__(self, "mis_compensation", False)
+
+
+@dataclasses.dataclass(frozen=True)
+class PathOptions(ProductOptions):
+    """Parameters of ``sh_path``."""
+
+    PLUGIN: ClassVar[str] = "sh_path"
+
+    max_depth: int = dataclasses.field(default=-1, metadata=_doc(
+        "Longest path, in vertices after the camera (-1: infinite). As in Mitsuba's "
+        "``path``: 0 renders nothing, 1 only directly visible emitters, 2 direct lighting."))
+    rr_depth: int = dataclasses.field(default=5, metadata=_doc(
+        "Path depth at which Russian roulette starts (> 0)."))
+
+    def _check_ranges(self) -> None:
+        super()._check_ranges()
+        if self.max_depth < -1:
+            self._fail("max_depth", "must be -1 (infinite) or >= 0", self.max_depth)
+        if self.rr_depth <= 0:
+            self._fail("rr_depth", "must be > 0", self.rr_depth)
+
+
+def parameter_table(options_cls: type[ProductOptions], indent: str = "") -> str:
+    """The RST ``pluginparameters`` rows of a plugin: name, type, documentation, default."""
+    rows = []
+    for field in sorted(dataclasses.fields(options_cls), key=_documentation_order(options_cls)):
+        kind = type(field.default).__name__
+        default = str(field.default).lower() if kind == "bool" else field.default
+        rows += [f"{indent} * - {field.name}",
+                 f"{indent}   - |{kind}|",
+                 f"{indent}   - {field.metadata['doc']} (Default: {default})"]
+    return "\n".join(rows)
+
+
+def _documentation_order(options_cls):
+    """Plugin-specific parameters first (as Mitsuba's docs list them), then the shared ones."""
+    shared = [f.name for f in dataclasses.fields(ProductOptions)]
+    own = [f.name for f in dataclasses.fields(options_cls) if f.name not in shared]
+    order = own + shared
+    return lambda field: order.index(field.name)
+
+
+def document_parameters(options_cls: type[ProductOptions]):
+    """Class decorator: put the parameter rows of ``options_cls`` right after the
+    ``.. pluginparameters::`` line of the class docstring."""
+    def decorate(cls):
+        lines = cls.__doc__.split("\n")
+        at = next(i for i, line in enumerate(lines) if line.strip() == ".. pluginparameters::")
+        indent = lines[at][:len(lines[at]) - len(lines[at].lstrip())]
+        lines[at + 1:at + 1] = ["", parameter_table(options_cls, indent)]
+        cls.__doc__ = "\n".join(lines)
+        return cls
+    return decorate
