@@ -3,19 +3,25 @@
 Implements hierarchical sample warping of SH functions and SH-lobe x
 environment-map product sampling (Jarosz, Carr, Jensen, "Importance Sampling
 Spherical Harmonics", Eurographics 2009) as Dr.Jit kernels.
+
+Importing the package registers the ``sh_direct`` and ``sh_path`` integrator
+plugins for the active Mitsuba variant and for every variant set later.
 """
 
-from ._backend import BackendError, check_llvm_backend, prefer_good_libllvm
+from ._backend import BackendError, VariantError, check_llvm_backend, prefer_good_libllvm
 
 prefer_good_libllvm()
 LLVM_VERSION = check_llvm_backend()
 
-from .sh.basis import sh_eval  # noqa: E402
-from .integrators import register, register_if_variant_set  # noqa: E402
+import mitsuba as mi  # noqa: E402
 
-# Make <integrator type="sh_direct"/> work right after `import mitsuba_shsampling`
-# when the user already chose a supported variant.
-register_if_variant_set()
+from .sh.basis import sh_eval  # noqa: E402
+from .integrators import register  # noqa: E402
+from .integrators import _register_for_new_variant  # noqa: E402
+
+if mi.variant() is not None:
+    register()
+mi.detail.add_variant_callback(_register_for_new_variant)
 
 __version__ = "0.1.0"
-__all__ = ["BackendError", "LLVM_VERSION", "register", "sh_eval"]
+__all__ = ["BackendError", "LLVM_VERSION", "VariantError", "register", "sh_eval"]

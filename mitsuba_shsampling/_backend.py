@@ -1,9 +1,14 @@
-"""Make sure Dr.Jit's LLVM backend is usable before anything is traced.
+"""What the package needs from Dr.Jit and Mitsuba: a usable libLLVM, a supported variant.
 
 Dr.Jit 1.5 JIT-compiles through a system libLLVM. With LLVM <= 15 (Debian 12's
 default) the first float ``dr.minimum``/``dr.maximum`` aborts the whole
 process ("LLVM ERROR: Cannot select ... fminimum"), so the check has to happen
 at import time, where it can still raise a Python exception.
+
+Variants: the SH warps are Dr.Jit kernels over RGB or mono radiance, so only
+JIT (``llvm_*``, ``cuda_*``) variants that are neither spectral nor polarized
+are supported. :func:`unsupported_variant_reason` is the one place that
+decides it (the plugins' registration and the command line both ask it).
 """
 
 from __future__ import annotations
@@ -21,6 +26,27 @@ INSTALL_HINT = (
 
 class BackendError(ImportError):
     """Raised when no usable libLLVM (>= 16) is available to Dr.Jit."""
+
+
+class VariantError(RuntimeError):
+    """Raised when the package is used under a Mitsuba variant it does not support."""
+
+
+#: Suggested variant in messages.
+DEFAULT_VARIANT = "llvm_ad_rgb"
+
+
+def unsupported_variant_reason(variant: str | None) -> str | None:
+    """None if the SH plugins run under ``variant``, else a one-line reason."""
+    if variant is None:
+        return f"no Mitsuba variant is set; call mi.set_variant('{DEFAULT_VARIANT}') first"
+    if not variant.startswith(("llvm_", "cuda_")):
+        return (f"variant '{variant}' is not supported: the SH warps are Dr.Jit kernels; "
+                f"use a JIT variant such as '{DEFAULT_VARIANT}'")
+    if "polarized" in variant or "spectral" in variant:
+        return (f"variant '{variant}' is not supported: the environment pyramid is built from "
+                f"RGB or mono radiance; use e.g. '{DEFAULT_VARIANT}'")
+    return None
 
 
 def _newest_good_libllvm() -> str | None:

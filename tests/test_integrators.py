@@ -194,17 +194,6 @@ def test_bad_parameters_raise_clear_errors(props, message):
         mi.load_dict(props)
 
 
-def test_unsupported_variants_are_refused_with_a_clear_error():
-    from mitsuba_shsampling.integrators.environment import check_variant
-    current = mi.variant()
-    try:
-        mi.set_variant("scalar_rgb")
-        with pytest.raises(RuntimeError, match="not supported"):
-            check_variant()
-    finally:
-        mi.set_variant(current)
-
-
 def test_a_non_envmap_environment_keeps_mitsubas_sampling_with_a_warning():
     scene = mi.load_dict({
         "type": "scene",

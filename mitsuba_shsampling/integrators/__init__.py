@@ -1,9 +1,14 @@
 """Mitsuba integrator plugins using SH product sampling of the environment.
 
-``register()`` registers ``sh_direct`` and ``sh_path`` for the active Mitsuba
-variant (Mitsuba registrations are per variant). Importing
-:mod:`mitsuba_shsampling` calls it when a variant is already set; call it
-again after switching variants.
+Mitsuba registrations are per variant. Importing :mod:`mitsuba_shsampling`
+calls :func:`register` for the active variant and installs a Mitsuba variant
+callback that calls it again after every ``mi.set_variant``, so ``sh_direct``
+and ``sh_path`` are always known to ``mi.load_dict`` and the XML parser.
+
+Under a variant the plugins cannot run on (scalar, spectral, polarized), both
+names are registered to a stub that raises
+:class:`~mitsuba_shsampling.VariantError` with the reason when a scene or
+dict instantiates it, instead of Mitsuba's generic "plugin not found".
 """
 
 from __future__ import annotations
@@ -12,17 +17,17 @@ import importlib
 
 import mitsuba as mi
 
-PLUGINS = ("sh_direct", "sh_path")
-_registered_variants: set[str] = set()
+from .._backend import VariantError, unsupported_variant_reason
+
 _class_variant: str | None = None
 
 
-def _plugin_classes():
-    """The plugin classes bound to the current variant.
+def _plugin_classes() -> dict[str, type]:
+    """Plugin name -> class, bound to the current variant.
 
     A Python subclass of ``mi.SamplingIntegrator`` is tied to the variant that
     was active when its ``class`` statement ran, so the modules are re-executed
-    after a variant switch.
+    after a variant switch (as Mitsuba does for its own Python integrators).
     """
     global _class_variant
     from . import sh_direct, sh_path
@@ -31,27 +36,33 @@ def _plugin_classes():
         sh_direct = importlib.reload(sh_direct)
         sh_path = importlib.reload(sh_path)
     _class_variant = mi.variant()
-    return sh_direct.SHDirectIntegrator, sh_path.SHPathIntegrator
+    return {"sh_direct": sh_direct.SHDirectIntegrator, "sh_path": sh_path.SHPathIntegrator}
+
+
+def _refusal(reason: str):
+    def refuse(props: mi.Properties):
+        raise VariantError(f"mitsuba_shsampling: {reason}")
+    return refuse
 
 
 def register() -> None:
-    """Register ``sh_direct`` and ``sh_path`` for the current variant."""
-    from .environment import check_variant
+    """Register ``sh_direct`` and ``sh_path`` for the current variant (as stubs
+    that raise :class:`~mitsuba_shsampling.VariantError` under unsupported ones).
 
-    check_variant()
-    direct_cls, path_cls = _plugin_classes()
-    mi.register_integrator("sh_direct", lambda props: direct_cls(props))
-    mi.register_integrator("sh_path", lambda props: path_cls(props))
-    _registered_variants.add(mi.variant())
+    :raises VariantError: no variant is set.
+    """
+    reason = unsupported_variant_reason(mi.variant())
+    if mi.variant() is None:
+        raise VariantError(f"mitsuba_shsampling: {reason}")
+    if reason is not None:
+        for name in ("sh_direct", "sh_path"):
+            mi.register_integrator(name, _refusal(reason))
+        return
+    for name, cls in _plugin_classes().items():
+        mi.register_integrator(name, lambda props, cls=cls: cls(props))
 
 
-def register_if_variant_set() -> bool:
-    """Register for the active variant if there is one it supports; returns success."""
-    variant = mi.variant()
-    if variant is None:
-        return False
-    try:
+def _register_for_new_variant(old: str | None, new: str | None) -> None:
+    """Mitsuba variant callback (see :func:`mitsuba.detail.add_variant_callback`)."""
+    if new is not None:
         register()
-    except RuntimeError:
-        return False
-    return True

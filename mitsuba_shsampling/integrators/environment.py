@@ -20,21 +20,6 @@ from ..lobes.scene_lobes import DIFFUSE_BANDS
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, ProductWarp
 
 
-def check_variant() -> None:
-    """Raise a clear error for variants the product strategy cannot run on."""
-    variant = mi.variant()
-    if variant is None:
-        raise RuntimeError("mitsuba_shsampling: set a Mitsuba variant first, e.g. mi.set_variant('llvm_ad_rgb')")
-    if not (variant.startswith("llvm_") or variant.startswith("cuda_")):
-        raise RuntimeError(
-            f"mitsuba_shsampling: variant '{variant}' is not supported: the SH warps are Dr.Jit "
-            "kernels; use a JIT variant such as 'llvm_ad_rgb'")
-    if "polarized" in variant or "spectral" in variant:
-        raise RuntimeError(
-            f"mitsuba_shsampling: variant '{variant}' is not supported (the environment pyramid "
-            "is built from RGB/mono radiance); use e.g. 'llvm_ad_rgb'")
-
-
 class ProductEnvironment:
     """Environment product sampling for one scene.
 
