@@ -16,7 +16,7 @@ import mitsuba as mi
 
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
-from ..lobes.scene_lobes import DIFFUSE_BANDS
+from ..lobes.scene_lobes import DIFFUSE_BANDS, registry_id
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, ProductWarp
 
 
@@ -195,21 +195,53 @@ def mis_weight(pdf_a, pdf_b):
 
 
 class SceneCache:
-    """Builds :class:`ProductEnvironment` once per scene object."""
+    """Builds :class:`ProductEnvironment` for a scene, and again whenever its inputs change.
+
+    The state is built from the environment emitter's traversed parameters
+    (``data``, ``scale``, ``to_world``) and those of every BSDF. Each
+    :meth:`get` traverses them again (on the host, no kernel) and compares
+    their Dr.Jit variable indices: ``params.update()`` installs new variables,
+    and a write into a parameter in place gets a new variable too, because the
+    cache holds a second reference to the old one (copy on write). Holding
+    those references also keeps the old indices from being recycled.
+    """
 
     def __init__(self, max_bands: int, sh_depth: int | None, mis_compensation: bool,
                  defensive_share: float = DEFAULT_DEFENSIVE_SHARE):
         self.max_bands, self.sh_depth, self.mis_compensation = max_bands, sh_depth, mis_compensation
         self.defensive_share = defensive_share
         self._scene, self._env = None, None
+        self._key, self._held = None, []
 
     def get(self, scene: mi.Scene) -> ProductEnvironment:
-        if self._scene is not scene:
+        if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
             self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation,
                                            self.defensive_share)
             self._scene = scene
+            # Read after the build, which may have sanitised the envmap's data.
+            inputs = self._inputs(scene)
+            self._key = self._identity(inputs)
+            self._held = [type(value)(value) for value in inputs if dr.detail.collect_indices(value)]
         return self._env
 
-    def invalidate(self) -> None:
-        """Forget the cached state (call after editing the environment map)."""
-        self._scene = self._env = None
+    @staticmethod
+    def _inputs(scene: mi.Scene) -> list:
+        """Traversed parameter values of the environment emitter and of each distinct BSDF."""
+        objects = [scene.environment()]
+        seen = set()
+        for shape in scene.shapes():
+            bsdf = shape.bsdf()
+            if bsdf is not None and registry_id(bsdf) not in seen:
+                seen.add(registry_id(bsdf))
+                objects.append(bsdf)
+        values = []
+        for obj in objects:
+            if obj is not None:
+                params = mi.traverse(obj)
+                values += [params[key] for key in params.keys()]
+        return values
+
+    @staticmethod
+    def _identity(values: list) -> tuple:
+        """Each value's Dr.Jit variable indices, or its repr for host values."""
+        return tuple(tuple(dr.detail.collect_indices(v)) or repr(v) for v in values)
