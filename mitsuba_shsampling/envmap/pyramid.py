@@ -37,7 +37,7 @@ import numpy as np
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
 #: buffer is 22.4 MB. Deeper levels would not help the warps anyway: rescaling
 #: a float32 sample loses about one bit per split, so ~11 levels per
-#: dimension is what a 24-bit mantissa supports (docs/math.md, section 4).
+#: dimension is what a 24-bit mantissa supports (docs/MATH.md, "Hierarchical sample warping").
 DEFAULT_MAX_DEPTH = 11
 
 #: Rec. 709 luminance weights, identical to ``mi.luminance``.
@@ -168,6 +168,38 @@ def _block_offset(level):
     return 1 + (mi.UInt32(_BLOCK_COUNT_MASK) & ((mi.UInt32(1) << (2 * level)) - 1))
 
 
+class EnvmapError(ValueError):
+    """An ``envmap`` the pyramid cannot represent (a ``to_world`` that is not a
+    rotation, a negative or non-finite ``scale``); the message is one line."""
+
+
+def _check_to_world(to_world: mi.AffineTransform4f) -> None:
+    linear = np.asarray(to_world.matrix.numpy(), dtype=np.float64)[:3, :3].reshape(3, 3)
+    if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-4):
+        singular = ", ".join(f"{s:.4g}" for s in np.linalg.svd(linear, compute_uv=False))
+        raise EnvmapError(
+            f"the envmap's to_world is not a rotation (its 3x3 part has singular values {singular}, "
+            "not 1, 1, 1): the envmap emitter maps directions through it without normalising them, "
+            "which product sampling cannot follow; remove the scale or shear from to_world")
+
+
+def _sanitise_emitter_data(params: mi.SceneParameters, data: np.ndarray) -> tuple[np.ndarray, int]:
+    """Set every texel with a NaN or infinite channel to 0 in the emitter's own ``data``.
+
+    The emitter then evaluates and samples (Mitsuba's own sampler is rebuilt by
+    ``params.update()``) the same map the pyramid integrates, so no strategy of
+    any integrator can return NaN from it. Returns the data and the number of
+    texels set to 0 (halo columns not counted).
+    """
+    bad = ~np.all(np.isfinite(data), axis=-1)
+    count = int(np.count_nonzero(bad[:, 1:-1]))
+    if count:
+        data = np.where(bad[..., None], np.float32(0), data)
+        params["data"] = type(params["data"])(data)
+        params.update()
+    return data, count
+
+
 class EnvPyramid:
     """Sum pyramid of an ``envmap`` emitter's luminance on the equal-area grid.
 
@@ -183,8 +215,16 @@ class EnvPyramid:
     children (a, b) = (0,0), (0,1), (1,0), (1,1), a = z-half, b = phi-half.
     So :meth:`children` is a single ``dr.gather(mi.Vector4f, ...)``.
 
-    Bad texels (NaN, +-Inf or negative luminance) count as 0, with one
-    warning. An all-zero map gives ``total == 0`` and ``is_black``.
+    Bad texels, with one warning: a texel with a NaN or infinite channel is
+    set to 0 *in the emitter's own data* (``mi.traverse`` + ``params.update()``),
+    so that the whole render, Mitsuba's own sampling and evaluation included,
+    sees the same finite map; texels with negative luminance stay in the
+    emitter but get no product-sampling probability (BSDF sampling under MIS
+    still reaches them). :meth:`from_latlong` has no emitter: bad texels count
+    as 0 there. An all-zero map gives ``total == 0`` and ``is_black``.
+
+    Raises :class:`EnvmapError` (one line) for a ``to_world`` that is not a
+    rotation or a ``scale`` that is negative or not finite.
 
     Parameters
     ----------
@@ -209,9 +249,12 @@ class EnvPyramid:
             raise TypeError(f"EnvPyramid: unsupported envmap data of shape {data.shape} "
                             "(expected (H, W+2, 1 or 3); spectral variants are not supported)")
         start = time.perf_counter()
+        to_world = mi.AffineTransform4f(params["to_world"])
+        _check_to_world(to_world)
+        data, sanitised = _sanitise_emitter_data(params, data)
         luminance = self._texel_luminance(data[:, 1:-1, :])
-        self._build(luminance, float(dr.ravel(params["scale"])[0]),
-                    mi.AffineTransform4f(params["to_world"]), max_depth, start, mis_compensation)
+        self._build(luminance, float(dr.ravel(params["scale"])[0]), to_world, max_depth, start,
+                    mis_compensation, sanitised)
 
     @classmethod
     def from_latlong(cls, image: np.ndarray, scale: float = 1.0,
@@ -249,18 +292,25 @@ class EnvPyramid:
         return out
 
     def _build(self, luminance: np.ndarray, scale: float, to_world: mi.AffineTransform4f,
-               max_depth: int | None, start: float, mis_compensation: bool = False) -> None:
+               max_depth: int | None, start: float, mis_compensation: bool = False,
+               sanitised: int | None = None) -> None:
+        """``sanitised``: texels already set to 0 in the emitter (None: no emitter)."""
         if not np.isfinite(scale) or scale < 0:
-            raise ValueError(f"EnvPyramid: envmap scale must be finite and >= 0, got {scale}")
-        linear = to_world.matrix.numpy()[:3, :3].reshape(3, 3)
-        if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-4):
-            raise ValueError("EnvPyramid: the envmap's to_world must be a rotation "
-                             "(the emitter maps directions through it without renormalising)")
+            raise EnvmapError(f"the envmap's scale must be finite and >= 0, got {scale}")
+        _check_to_world(to_world)
         bad = ~np.isfinite(luminance) | (luminance < 0)
         bad_count = int(np.count_nonzero(bad))
+        if sanitised is None and bad_count:
+            warnings.warn(f"EnvPyramid: {bad_count} envmap texel(s) with NaN, infinite or negative "
+                          "luminance are treated as 0", RuntimeWarning, stacklevel=3)
+        elif sanitised or bad_count:
+            parts = [f"{sanitised} with a NaN or infinite channel were set to 0 in the envmap "
+                     "emitter's own data, for the whole render"] if sanitised else []
+            parts += [f"{bad_count} with negative luminance get no product-sampling probability "
+                      "(the emitter keeps them)"] if bad_count else []
+            warnings.warn(f"EnvPyramid: {sanitised + bad_count} envmap texel(s) unusable: "
+                          + "; ".join(parts), RuntimeWarning, stacklevel=3)
         if bad_count:
-            warnings.warn(f"EnvPyramid: {bad_count} envmap texel(s) with NaN, infinite or "
-                          "negative luminance are treated as 0", RuntimeWarning, stacklevel=3)
             luminance = np.where(bad, np.float32(0), luminance)
 
         height, width = luminance.shape
