@@ -1,4 +1,4 @@
-"""Command line: ``mitsuba-shsampling compare|bench`` (also ``python -m mitsuba_shsampling``).
+"""Command line: ``mitsuba-shsampling compare|bench|render`` (also ``python -m mitsuba_shsampling``).
 
 Exit codes: 0 success, 2 bad input (missing scene or map, unknown method or
 variant, invalid option), 1 any other failure.
@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+
+from . import render
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler")
@@ -63,19 +65,22 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--quick", action="store_true", help="passed on to the benchmark scripts; smaller sweep")
     bench.add_argument("--sampler", default="independent", choices=SAMPLERS)
     bench.add_argument("--max-spp", type=_positive, default=None, help="largest spp of the sweep (default 256, quick 16)")
+
+    render.add_parser(sub, DEFAULT_VARIANT)
     return parser
 
 
 def _set_variant(variant: str) -> None:
     import mitsuba_shsampling  # noqa: F401  (checks the LLVM backend before Mitsuba traces anything)
     import mitsuba as mi
+    from ._backend import unsupported_variant_reason
 
-    if not variant.startswith(("llvm_", "cuda_")):
-        raise UsageError(f"variant '{variant}' is not supported: the package needs a JIT variant "
-                         f"(e.g. {DEFAULT_VARIANT})")
+    reason = unsupported_variant_reason(variant)
+    if reason is not None:
+        raise UsageError(reason)
     if variant not in mi.variants():
-        raise UsageError(f"variant '{variant}' is not available in this Mitsuba build "
-                         f"(available: {', '.join(v for v in mi.variants() if v.startswith(('llvm_', 'cuda_')))})")
+        raise UsageError(f"variant '{variant}' is not available in this Mitsuba build (available: "
+                         f"{', '.join(v for v in mi.variants() if unsupported_variant_reason(v) is None)})")
     try:
         mi.set_variant(variant)
     except Exception as err:  # e.g. a cuda_ variant on a machine without a GPU
@@ -171,20 +176,36 @@ def _bench(args) -> int:
     return 0
 
 
+def _user_error(err: BaseException) -> str | None:
+    """The one-line message of a bad-input error anywhere in ``err``'s cause chain
+    (``mi.render`` wraps errors raised while rendering), else None."""
+    from ._backend import VariantError
+    from .envmap.pyramid import EnvmapError
+    from .integrators.options import OptionError
+    from .scenes import SceneError
+
+    while err is not None:
+        if isinstance(err, (SceneError, EnvmapError, OptionError, VariantError, render.RenderError)):
+            return str(err)
+        err = err.__cause__ or err.__context__
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mitsuba-shsampling`` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
+    commands = {"compare": _compare, "bench": _bench, "render": lambda a: render.main(a, _set_variant)}
     try:
-        return _compare(args) if args.command == "compare" else _bench(args)
+        return commands[args.command](args)
     except UsageError as err:
         print(f"mitsuba-shsampling: error: {err}", file=sys.stderr)
         return 2
     except Exception as err:
-        from .scenes import SceneError
-        if isinstance(err, SceneError):
-            print(f"mitsuba-shsampling: error: {err}", file=sys.stderr)
-            return 2
-        raise
+        message = _user_error(err)
+        if message is None:
+            raise
+        print(f"mitsuba-shsampling: error: {message}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

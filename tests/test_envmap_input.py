@@ -12,6 +12,7 @@ import mitsuba_shsampling  # noqa: F401  (registers the plugins)
 
 mi.set_variant("llvm_ad_rgb")
 
+from mitsuba_shsampling import cli  # noqa: E402
 from mitsuba_shsampling.envmap import EnvmapError  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong  # noqa: E402
 
@@ -81,3 +82,22 @@ def test_a_scaled_to_world_is_refused_with_a_one_line_reason():
     message = str(cause)
     assert "\n" not in message
     assert "to_world is not a rotation" in message and "singular values 2, 2, 2" in message
+
+
+def test_the_command_line_prints_that_reason_alone(tmp_path, capsys):
+    envmap = tmp_path / "sky.exr"
+    mi.Bitmap(sun_sky_latlong(8, 16)).write(str(envmap))
+    scene = tmp_path / "scaled_sky.xml"
+    scene.write_text(f"""<scene version="3.0.0">
+        <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="4"/>
+            <integer name="height" value="4"/></film></sensor>
+        <shape type="sphere"><bsdf type="diffuse"/></shape>
+        <emitter type="envmap"><string name="filename" value="{envmap}"/>
+            <transform name="to_world"><scale value="2"/></transform></emitter>
+    </scene>""")
+    code = cli.main(["render", str(scene), "--integrator", "sh_direct", "--spp", "1", "--no-progress",
+                     "-o", str(tmp_path / "out.exr")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert err.startswith("mitsuba-shsampling: error: the envmap's to_world is not a rotation")
+    assert len(err.splitlines()) == 1

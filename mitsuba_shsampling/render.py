@@ -1,0 +1,171 @@
+"""``render``: what the ``mitsuba`` executable does, with this package's plugins registered.
+
+The ``mitsuba`` command-line renderer is a C++ program: it cannot load Python
+plugins, so ``<integrator type="sh_path"/>`` fails there with "Plugin not
+found". This command is its drop-in::
+
+    python -m mitsuba_shsampling render SCENE.xml --integrator sh_path --spp 256 \\
+        -o out.exr -D envmap=my_map.exr -D res=512 [--variant llvm_ad_rgb]
+
+``SCENE`` is an XML file or the name of a built-in scene (see
+:func:`mitsuba_shsampling.scenes.builtin_scenes`). ``-D name=value`` sets a
+scene's ``$name`` parameter, as for ``mitsuba``. ``--integrator`` replaces the
+scene's integrator by a default-configured plugin of that type (its
+parameters come from the XML otherwise); ``--spp`` overrides the sensor's
+sample count. The image is rendered in passes with consecutive seeds
+(``--seed``, ``--seed + 1``, ...), shown by a progress bar, and their
+spp-weighted mean is written: the same estimate as one render with all the
+samples (for independent samplers; stratified ones stratify within a pass).
+The output format follows the extension: ``.exr`` (default, float32, the
+film's channels), ``.hdr``, ``.pfm``, or ``.png``/``.jpg`` (sRGB, 8 bit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+import sys
+import time
+
+#: Largest number of samples per pixel rendered in one pass (one progress step).
+PASS_SPP = 16
+
+
+class RenderError(ValueError):
+    """Bad ``render`` input (malformed ``-D``, impossible pass split, a scene that
+    does not load or has no sensor); the message is one line."""
+
+
+def add_parser(subparsers, variant_default: str) -> argparse.ArgumentParser:
+    """Add the ``render`` subcommand to a ``cli`` subparsers object."""
+    parser = subparsers.add_parser(
+        "render", help="render a scene to an image, like the mitsuba executable (which cannot "
+                       "load Python plugins)")
+    parser.add_argument("scene", metavar="SCENE", help="scene file (.xml) or built-in scene name")
+    parser.add_argument("-o", "--output", help="image file (default: SCENE's stem + .exr, here)")
+    parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
+                        help="set the scene parameter $NAME (repeatable), as mitsuba -D")
+    parser.add_argument("--integrator", metavar="TYPE",
+                        help="integrator plugin replacing the scene's, e.g. sh_path")
+    parser.add_argument("--spp", type=int, help="samples per pixel (default: the scene's sampler)")
+    parser.add_argument("--passes", type=int,
+                        help=f"render passes (default: enough for at most {PASS_SPP} spp each)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the first pass (default %(default)s)")
+    parser.add_argument("-m", "--variant", default=variant_default,
+                        help="Mitsuba JIT variant (default %(default)s)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return parser
+
+
+def parse_defines(items: list[str]) -> dict[str, str]:
+    """``["name=value", ...]`` -> ``{name: value}``; RenderError naming a malformed item."""
+    defines = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise RenderError(f"-D expects NAME=VALUE, got '{item}'")
+        defines[name.strip()] = value
+    return defines
+
+
+def pass_plan(spp: int, passes: int | None = None) -> list[int]:
+    """Samples per pixel of each pass: ``passes`` passes (default: ceil(spp /
+    :data:`PASS_SPP`)) whose counts differ by at most one and sum to ``spp``."""
+    if spp < 1:
+        raise RenderError(f"spp must be >= 1, got {spp}")
+    passes = math.ceil(spp / PASS_SPP) if passes is None else passes
+    if not 1 <= passes <= spp:
+        raise RenderError(f"--passes must be in [1, spp = {spp}], got {passes}")
+    return [spp // passes + (1 if k < spp % passes else 0) for k in range(passes)]
+
+
+def resolve_scene(scene: str) -> str:
+    """Path of ``scene``: an existing file, or a built-in scene's name."""
+    from .scenes import SceneError, builtin_scenes
+
+    if os.path.isfile(scene):
+        return scene
+    builtin = builtin_scenes()
+    if scene in builtin:
+        return builtin[scene]
+    raise SceneError(f"scene file not found: {scene} (nor a built-in scene: {', '.join(builtin)})")
+
+
+def write_image(path: str, image, film) -> None:
+    """Write ``image`` (H, W, C), with the channel layout of ``film``'s developed
+    bitmap when it has C channels (names such as ``R, G, B, A`` or AOVs)."""
+    import mitsuba as mi
+    import numpy as np
+
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    layout = film.bitmap()
+    names = [field.name for field in layout.struct_()]
+    if len(names) == image.shape[2]:
+        bitmap = mi.Bitmap(image, layout.pixel_format(), names)
+    else:
+        bitmap = mi.Bitmap(image)
+    if os.path.splitext(path)[1].lower() in (".png", ".jpg", ".jpeg"):
+        rgb = mi.Bitmap.PixelFormat.RGBA if bitmap.has_alpha() else mi.Bitmap.PixelFormat.RGB
+        bitmap = bitmap.convert(rgb, mi.Struct.Type.UInt8, srgb_gamma=True)
+    bitmap.write(path)
+
+
+def render_file(args) -> dict:
+    """Load, render and write as ``args`` say (a variant must be set); returns a summary."""
+    import mitsuba as mi
+    import numpy as np
+    from tqdm import tqdm
+
+    path = resolve_scene(args.scene)
+    defines = parse_defines(args.defines)
+    try:
+        scene = mi.load_file(path, **defines)
+        integrator = mi.load_dict({"type": args.integrator}) if args.integrator else scene.integrator()
+    except RuntimeError as err:
+        raise RenderError(f"cannot load {path}: {_one_line(err)}") from None
+    if not scene.sensors():
+        raise RenderError(f"{path} has no sensor to render from")
+    if integrator is None:
+        raise RenderError(f"{path} has no integrator; choose one with --integrator")
+    sensor = scene.sensors()[0]
+    spp = args.spp or sensor.sampler().sample_count()
+    plan = pass_plan(spp, args.passes)
+    output = args.output or os.path.splitext(os.path.basename(path))[0] + ".exr"
+
+    total = None
+    start = time.perf_counter()
+    with tqdm(total=spp, unit="spp", desc=os.path.basename(path), disable=args.no_progress,
+              file=sys.stderr) as bar:
+        for k, pass_spp in enumerate(plan):
+            image = np.array(mi.render(scene, sensor=sensor, integrator=integrator, spp=pass_spp,
+                                       seed=args.seed + k), dtype=np.float64)
+            total = pass_spp * image if total is None else total + pass_spp * image
+            bar.update(pass_spp)
+    elapsed = time.perf_counter() - start
+    image = total / spp
+    write_image(output, image, sensor.film())
+    return {"output": os.path.abspath(output), "shape": image.shape, "spp": spp,
+            "passes": len(plan), "time_s": elapsed}
+
+
+def _one_line(err: BaseException) -> str:
+    """A Mitsuba parser error in one line: without the ``[file.cpp:123]`` source
+    tags, and for a Python plugin's exception (which arrives as text with its
+    traceback) only the exception's own last line."""
+    text = str(err)
+    head, traceback, tail = text.partition("Traceback (most recent call last):")
+    if traceback:
+        text = head + " " + tail.strip().splitlines()[-1]
+    return " ".join(re.sub(r"\[[\w.]+:\d+\] ?", "", text).split()) or type(err).__name__
+
+
+def main(args, set_variant) -> int:
+    """Run the ``render`` subcommand; ``set_variant`` is the CLI's checked ``mi.set_variant``."""
+    set_variant(args.variant)
+    summary = render_file(args)
+    height, width = summary["shape"][:2]
+    print(f"wrote {summary['output']} ({width}x{height}, {summary['shape'][2]} channels, "
+          f"{summary['spp']} spp in {summary['passes']} pass(es), {summary['time_s']:.1f} s)")
+    return 0
