@@ -1,7 +1,7 @@
 """Bake Mitsuba's ``sunsky`` emitter into a latitude-longitude EXR for ``envmap``.
 
 The result reproduces ``sunsky`` when loaded as an ``envmap`` with an identity
-``to_world`` in a **+Y-up world** (the frame of every scene in ``scenes/``):
+``to_world`` in a **+Y-up world** (the frame of every built-in scene, ``mitsuba_shsampling/scenes/``):
 
 - ``sunsky`` is z-up in its local frame; it is loaded with a ``to_world``
   that turns its zenith into +Y (``sun_direction`` is then given in world
@@ -23,7 +23,7 @@ own importance sampling.
 
 Usage::
 
-    python3 scripts/bake_sunsky.py [--out scenes/textures/sunsky.exr] [--width 512]
+    python3 scripts/bake_sunsky.py [--out mitsuba_shsampling/scenes/textures/sunsky.exr] [--width 512]
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ def check(path: str, n_dirs: int = 4096) -> dict:
 def main() -> None:
     here = os.path.dirname(os.path.abspath(__file__))
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", default=os.path.join(here, "..", "scenes", "textures", "sunsky.exr"))
+    parser.add_argument("--out", default=os.path.join(here, "..", "mitsuba_shsampling", "scenes", "textures", "sunsky.exr"))
     parser.add_argument("--width", type=int, default=512)
     args = parser.parse_args()
 

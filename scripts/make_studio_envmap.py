@@ -9,7 +9,7 @@ theta = y pi / (H-1)), see /work/shared/design/mitsuba.md.
 
 Usage::
 
-    python3 scripts/make_studio_envmap.py [--out scenes/textures/studio.exr] [--width 512]
+    python3 scripts/make_studio_envmap.py [--out mitsuba_shsampling/scenes/textures/studio.exr] [--width 512]
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def studio_map(width: int) -> np.ndarray:
 def main() -> None:
     here = os.path.dirname(os.path.abspath(__file__))
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", default=os.path.join(here, "..", "scenes", "textures", "studio.exr"))
+    parser.add_argument("--out", default=os.path.join(here, "..", "mitsuba_shsampling", "scenes", "textures", "studio.exr"))
     parser.add_argument("--width", type=int, default=512)
     args = parser.parse_args()
 

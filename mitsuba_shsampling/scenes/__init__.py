@@ -1,7 +1,8 @@
 """Built-in scenes and environment maps, and a loader that sets their parameters.
 
-The scenes in ``scenes/`` (next to the package) are Mitsuba 3 XML files whose
-settings are ``<default name=...>`` parameters:
+The scenes are this package's data, beside this file (so an installed package
+has them): Mitsuba 3 XML files, a shared stage in ``include/`` and the maps in
+``textures/``. Their settings are ``<default name=...>`` parameters:
 
 ================== =========================================================
 ``envmap``         lat-long map file of the ``envmap`` emitter
@@ -27,7 +28,7 @@ import xml.etree.ElementTree as ET
 import mitsuba as mi
 
 #: Folder of the built-in XML scenes.
-SCENES_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "scenes"))
+SCENES_DIR = os.path.dirname(os.path.abspath(__file__))
 #: Folder of the built-in environment maps.
 TEXTURES_DIR = os.path.join(SCENES_DIR, "textures")
 #: Mitsuba's ``sunsky`` (Hosek-Wilkie sky + sun 35 degrees up) baked by scripts/bake_sunsky.py.
@@ -49,7 +50,7 @@ def builtin_scenes() -> dict[str, str]:
 
 
 def builtin_envmaps() -> dict[str, str]:
-    """Name (file stem) -> absolute path of the environment maps shipped in ``scenes/textures``."""
+    """Name (file stem) -> absolute path of the environment maps shipped in ``textures/``."""
     names = sorted(f for f in os.listdir(TEXTURES_DIR) if f.endswith((".exr", ".hdr")))
     return {os.path.splitext(f)[0]: os.path.join(TEXTURES_DIR, f) for f in names}
 
