@@ -60,9 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--convergence-max-spp", type=int, default=None,
                          help="largest spp of the convergence sweep (default 4 x spp, 0 disables)")
 
-    bench = sub.add_parser("bench", parents=[common], help="run scripts/bench_*.py and an error-vs-time sweep")
+    bench = sub.add_parser("bench", parents=[common], help="run the sampler benchmarks and an error-vs-time sweep")
     bench.add_argument("--out", default="bench", help="output folder (default %(default)s)")
-    bench.add_argument("--quick", action="store_true", help="passed on to the benchmark scripts; smaller sweep")
+    bench.add_argument("--quick", action="store_true", help="about a minute per benchmark; smaller sweep")
     bench.add_argument("--sampler", default="independent", choices=SAMPLERS)
     bench.add_argument("--max-spp", type=_positive, default=None, help="largest spp of the sweep (default 256, quick 16)")
 
@@ -169,9 +169,9 @@ def _bench(args) -> int:
     res = min(args.res, 64) if args.quick else args.res
     summary = run_bench(args.out, args.quick, res, args.sampler, max_spp, args.ref_spp,
                         args.cache_dir, progress=not args.no_progress)
-    for script in summary["scripts"]:
-        print(f"{script['script']}: exit {script['returncode']}, {script['time_s']:.1f} s, "
-              f"JSON: {', '.join(script['results']) or 'none'}")
+    for run in summary["benchmarks"]:
+        status = f"FAILED ({run['error']})" if run["error"] else f"JSON: {run['json']}"
+        print(f"{run['benchmark']}: {run['time_s']:.1f} s, {status}")
     print(f"sweep: {os.path.join(os.path.abspath(args.out), 'sweep.json')}")
     return 0
 

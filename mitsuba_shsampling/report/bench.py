@@ -1,100 +1,53 @@
-"""The ``bench`` command: run the ``scripts/bench_*.py`` benchmarks and an error-versus-time sweep.
+"""The ``bench`` command: every benchmark of :mod:`mitsuba_shsampling.benchmarks`, then an
+error-versus-time sweep.
 
-Contract with the benchmark scripts: each runs as
-``python3 scripts/bench_<name>.py [--quick] [--json <out>/bench_<name>/bench_<name>.json]``
-(each option only if the script's ``--help`` lists it) with its working
-directory set to ``<out>/bench_<name>/`` (so default relative output paths
-land there) and the environment variable ``SHSAMPLING_BENCH_OUT`` naming that
-folder. JSON files it writes there, or new/updated ``*.json`` in the
-repository's root, ``scripts/`` or ``bench/`` folders during its run, are
-collected into that folder; stdout/stderr are saved as
-``stdout.txt``/``stderr.txt``.
+Each benchmark's ``run(quick)`` is called in this process, in the order of
+:data:`~mitsuba_shsampling.benchmarks.NAMES`; what it prints goes to
+``<out>/bench_<name>/stdout.txt``, its records to ``<out>/bench_<name>/bench_<name>.json``,
+and an exception to ``error.txt`` there (the remaining benchmarks still run).
 """
 
 from __future__ import annotations
 
-import glob
+import contextlib
 import json
 import os
-import shutil
-import subprocess
 import sys
 import time
+import traceback
 
 import numpy as np
 from tqdm import tqdm
 
+from .. import benchmarks
 from .. import scenes as builtin
 from . import metrics
 from .methods import available_methods
 from .plots import convergence_figure
 from .rendering import MethodRenderer, admissible_spp, render_reference
 
-REPO_ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
-SCRIPTS_DIR = os.path.join(REPO_ROOT, "scripts")
 
-
-def bench_scripts() -> list[str]:
-    """The ``scripts/bench_*.py`` files that exist, sorted."""
-    return sorted(glob.glob(os.path.join(SCRIPTS_DIR, "bench_*.py")))
-
-
-def _json_snapshot() -> dict[str, float]:
-    found = {}
-    for folder in (REPO_ROOT, SCRIPTS_DIR, os.path.join(REPO_ROOT, "bench")):
-        for path in glob.glob(os.path.join(folder, "*.json")):
-            found[path] = os.path.getmtime(path)
-    return found
-
-
-def _script_options(script: str, env: dict) -> str:
-    """The ``--help`` text of a script (empty if it has none)."""
-    try:
-        proc = subprocess.run([sys.executable, script, "--help"], env=env, capture_output=True,
-                              text=True, timeout=120)
-    except subprocess.TimeoutExpired:
-        return ""
-    return proc.stdout if proc.returncode == 0 else ""
-
-
-def run_script(script: str, out: str, quick: bool, timeout_s: float = 3600) -> dict:
-    """Run one benchmark script; returns its status and the JSON files collected."""
-    name = os.path.splitext(os.path.basename(script))[0]
-    folder = os.path.abspath(os.path.join(out, name))
+def run_benchmark(name: str, out: str, quick: bool) -> dict:
+    """Run one benchmark; returns its name, status, time and records."""
+    folder = os.path.abspath(os.path.join(out, f"bench_{name}"))
     os.makedirs(folder, exist_ok=True)
-    before = _json_snapshot()
-    env = dict(os.environ, SHSAMPLING_BENCH_OUT=folder)
-    env["PYTHONPATH"] = REPO_ROOT + os.pathsep + env.get("PYTHONPATH", "")
-    options = _script_options(script, env)
-    argv = [sys.executable, script]
-    if quick and "--quick" in options:
-        argv.append("--quick")
-    if "--json" in options:
-        argv += ["--json", os.path.join(folder, name + ".json")]
+    records, error = None, None
     start = time.perf_counter()
-    try:
-        proc = subprocess.run(argv, cwd=folder, env=env, capture_output=True, text=True,
-                              timeout=timeout_s)
-        returncode, stdout, stderr = proc.returncode, proc.stdout, proc.stderr
-    except subprocess.TimeoutExpired as err:
-        returncode, stdout, stderr = None, err.stdout or "", f"timed out after {timeout_s} s"
-    elapsed = time.perf_counter() - start
-    with open(os.path.join(folder, "stdout.txt"), "w") as f:
-        f.write(stdout if isinstance(stdout, str) else stdout.decode(errors="replace"))
-    with open(os.path.join(folder, "stderr.txt"), "w") as f:
-        f.write(stderr if isinstance(stderr, str) else stderr.decode(errors="replace"))
-    for path, mtime in _json_snapshot().items():
-        if before.get(path) != mtime:
-            shutil.copy(path, folder)
-    collected = {}
-    for path in sorted(glob.glob(os.path.join(folder, "*.json"))):
+    with open(os.path.join(folder, "stdout.txt"), "w") as log, contextlib.redirect_stdout(log):
         try:
-            with open(path) as f:
-                collected[os.path.basename(path)] = json.load(f)
-        except (OSError, json.JSONDecodeError) as err:
-            collected[os.path.basename(path)] = {"error": f"unreadable JSON: {err}"}
-    return {"script": os.path.relpath(script, REPO_ROOT), "argv": argv[1:], "returncode": returncode,
-            "time_s": elapsed, "results": collected}
+            records = benchmarks.benchmark(name).run(quick=quick)
+        except Exception:  # one failing benchmark must not stop the others
+            error = traceback.format_exc()
+    elapsed = time.perf_counter() - start
+    json_path = os.path.join(folder, f"bench_{name}.json")
+    if error is None:
+        with open(json_path, "w") as f:
+            json.dump(records, f, indent=1)
+    else:
+        with open(os.path.join(folder, "error.txt"), "w") as f:
+            f.write(error)
+    return {"benchmark": name, "error": None if error is None else error.strip().splitlines()[-1],
+            "time_s": elapsed, "json": json_path if error is None else None, "results": records}
 
 
 def error_time_sweep(out: str, scene_path: str, settings: dict, max_spp: int, ref_spp: int,
@@ -137,14 +90,14 @@ def error_time_sweep(out: str, scene_path: str, settings: dict, max_spp: int, re
 
 def run_bench(out: str, quick: bool, res: int, sampler: str, max_spp: int, ref_spp: int,
               cache_dir: str, progress: bool = True) -> dict:
-    """Run every benchmark script, then the sweep on the default scene; writes ``bench.json``."""
+    """Run every benchmark, then the sweep on the default scene; writes ``bench.json``."""
     os.makedirs(out, exist_ok=True)
-    scripts = [run_script(s, out, quick) for s in tqdm(bench_scripts(), desc="bench scripts",
-                                                       disable=not progress, file=sys.stderr)]
+    runs = [run_benchmark(name, out, quick) for name in tqdm(benchmarks.NAMES, desc="benchmarks",
+                                                              disable=not progress, file=sys.stderr)]
     settings = {"res": res, "sampler": sampler, "envmap": None, "max_depth": 2}
     sweep = error_time_sweep(out, builtin.default_scene_path(), settings, max_spp, ref_spp,
                              cache_dir, progress)
-    summary = {"scripts": scripts, "sweep": sweep}
+    summary = {"benchmarks": runs, "sweep": sweep}
     with open(os.path.join(out, "bench.json"), "w") as f:
         json.dump(summary, f, indent=2)
     return summary

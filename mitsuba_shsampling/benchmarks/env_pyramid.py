@@ -1,0 +1,87 @@
+"""Build time and memory of EnvPyramid for synthetic sun-and-sky maps.
+
+Each size is measured in a fresh Python process so that peak-memory figures
+are not polluted by earlier runs. Prints a table and writes JSON.
+
+    python3 scripts/bench_env_pyramid.py [--quick] [--sizes 512x1024 4096x8192] [--out env_pyramid_bench.json]
+
+Columns: texels (H x W), depth D, build time (median of ``--repeats`` builds
+after one warm-up), pyramid buffer size, peak numpy temporaries during the
+build (tracemalloc), and growth of the process's peak RSS during the first
+build (includes the emitter's own texel copy being read).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+from . import write_json
+
+SIZES = ("512x1024", "4096x8192")
+QUICK_SIZES = ("512x1024",)
+
+
+def measure_here(height: int, width: int, repeats: int) -> dict:
+    """Build pyramids of one map size in this process; its peak figures are only
+    meaningful in a fresh process (see :func:`measure`)."""
+    import resource
+    import statistics
+    import tracemalloc
+
+    import mitsuba as mi
+
+    mi.set_variant("llvm_ad_rgb")
+    from ..envmap import EnvPyramid
+    from ..envmap.synthetic import envmap_emitter, sun_sky_latlong
+
+    emitter = envmap_emitter(sun_sky_latlong(height, width))
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    tracemalloc.start()
+    first = EnvPyramid(emitter)
+    numpy_peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    rss_growth = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before
+    times = [first.build_time_s] + [EnvPyramid(emitter).build_time_s for _ in range(repeats)]
+    return dict(height=height, width=width, depth=first.depth, first_build_s=times[0],
+                build_s=statistics.median(times[1:] or times), buffer_mb=first.nbytes / 2**20,
+                numpy_peak_mb=numpy_peak / 2**20, rss_growth_mb=rss_growth / 1024, total=first.total)
+
+
+def measure(height: int, width: int, repeats: int) -> dict:
+    """:func:`measure_here` in a fresh interpreter."""
+    code = ("import json, sys; from mitsuba_shsampling.benchmarks.env_pyramid import measure_here; "
+            "print(json.dumps(measure_here(*map(int, sys.argv[1:]))))")
+    result = subprocess.run([sys.executable, "-c", code, str(height), str(width), str(repeats)],
+                            check=True, capture_output=True, text=True)
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def run(quick: bool = False, sizes: list[str] | None = None, repeats: int = 3) -> list[dict]:
+    """One record per map size (``HEIGHTxWIDTH``)."""
+    print(f"{'texels':>11} {'D':>3} {'first s':>8} {'build s':>8} {'buffer MB':>10} "
+          f"{'numpy peak MB':>14} {'RSS growth MB':>14}")
+    rows = []
+    for size in sizes or (QUICK_SIZES if quick else SIZES):
+        height, width = map(int, size.lower().split("x"))
+        r = measure(height, width, repeats)
+        rows.append(r)
+        print(f"{r['height']:>5}x{r['width']:<5} {r['depth']:>3} {r['first_build_s']:>8.3f} {r['build_s']:>8.3f} "
+              f"{r['buffer_mb']:>10.1f} {r['numpy_peak_mb']:>14.1f} {r['rss_growth_mb']:>14.1f}", flush=True)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help=f"only {QUICK_SIZES[0]}")
+    parser.add_argument("--sizes", nargs="+", help=f"map sizes as HEIGHTxWIDTH (default {' '.join(SIZES)})")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", "--json", dest="json", default="env_pyramid_bench.json")
+    args = parser.parse_args(argv)
+    write_json(args.json, run(args.quick, args.sizes, args.repeats))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,67 @@
+"""Specification: the benchmarks are importable functions of the package, the
+``scripts/bench_*.py`` files only call them, and ``bench`` runs them in-process."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+import mitsuba_shsampling  # noqa: F401
+import mitsuba as mi
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling import benchmarks  # noqa: E402
+from mitsuba_shsampling.benchmarks import env_pyramid  # noqa: E402
+from mitsuba_shsampling.report.bench import run_benchmark  # noqa: E402
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.mark.parametrize("name", benchmarks.NAMES)
+def test_each_benchmark_has_run_and_main_and_a_thin_script(name):
+    module = benchmarks.benchmark(name)
+    assert callable(module.run) and callable(module.main)
+    with open(os.path.join(REPO, "scripts", f"bench_{name}.py")) as f:
+        script = f.read()
+    assert f"from mitsuba_shsampling.benchmarks.{name} import main" in script
+    assert len(script.splitlines()) < 10
+
+
+def test_an_unknown_benchmark_name_is_refused():
+    with pytest.raises(ValueError, match="unknown benchmark"):
+        benchmarks.benchmark("nope")
+
+
+def test_a_script_runs_its_benchmark_and_writes_json(tmp_path):
+    out = tmp_path / "pyramid.json"
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, os.path.join(REPO, "scripts", "bench_env_pyramid.py"),
+                           "--sizes", "16x32", "--repeats", "1", "--json", str(out)],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "16x32" in proc.stdout.replace(" ", "")
+    (row,) = json.loads(out.read_text())
+    assert (row["height"], row["width"]) == (16, 32) and row["total"] > 0
+
+
+def test_bench_calls_run_in_process_and_saves_records_and_output(tmp_path, monkeypatch):
+    monkeypatch.setattr(env_pyramid, "QUICK_SIZES", ("8x16",))
+    result = run_benchmark("env_pyramid", str(tmp_path), quick=True)
+    assert result["error"] is None
+    folder = tmp_path / "bench_env_pyramid"
+    assert json.loads((folder / "bench_env_pyramid.json").read_text()) == result["results"]
+    assert [(r["height"], r["width"]) for r in result["results"]] == [(8, 16)]
+    assert "8x16" in (folder / "stdout.txt").read_text().replace(" ", "")
+
+
+def test_a_failing_benchmark_is_recorded_not_raised(tmp_path, monkeypatch):
+    def broken(quick=False):
+        raise RuntimeError("no kernel today")
+
+    monkeypatch.setattr(env_pyramid, "run", broken)
+    result = run_benchmark("env_pyramid", str(tmp_path), quick=True)
+    assert result["error"] == "RuntimeError: no kernel today" and result["json"] is None
+    assert "no kernel today" in (tmp_path / "bench_env_pyramid" / "error.txt").read_text()
