@@ -39,7 +39,7 @@ TILTED = mi.ScalarAffineTransform4f().rotate((np.array([0.3, 0.8, -0.52]) / np.l
 # ----------------------------------------------------------------- helpers
 
 def phong_attenuation(s: float, n_bands: int) -> list[float]:
-    """lambda_l of the normalised Phong lobe (recurrence of math.md section 6)."""
+    """lambda_l of the normalised Phong lobe (recurrence of docs/MATH.md section 8)."""
     lam = [1.0, (s + 1) / (s + 2)]
     for l in range(n_bands - 2):
         lam.append(lam[l] * (s - l) / (s + l + 3))

@@ -99,7 +99,7 @@ def test_windowed_lobe_turned_to_any_axis_stays_non_negative_in_float32():
 
 
 def test_window_quality_reproduces_the_truncation_figures_of_math_md():
-    # Energy missed by truncation (math.md section 6) = l2_loss^2 without a window.
+    # Energy missed by truncation (docs/MATH.md section 8) = l2_loss^2 without a window.
     for s, n, energy in [(20.0, 10, 7e-3), (100.0, 10, 0.37), (100.0, 20, 0.019), (200.0, 20, 0.136)]:
         q = window_quality(phong_attenuation(s, 600), np.ones(n))
         assert q["l2_loss"] ** 2 == pytest.approx(energy, rel=0.05)

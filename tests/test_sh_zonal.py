@@ -17,7 +17,7 @@ from mitsuba_shsampling.sh.zonal import (  # noqa: E402
 
 
 def phong_attenuation_closed_form(s: float, l: int) -> float:
-    """(s+1) J(s,l) of math.md section 6 (float64, 1/Gamma = 0 at its poles)."""
+    """(s+1) J(s,l) of docs/MATH.md section 8 (float64, 1/Gamma = 0 at its poles)."""
     a, b = 1 + (s - l) / 2, (s + l + 3) / 2
     if a <= 0 and a == int(a):
         return 0.0

@@ -37,7 +37,7 @@ import numpy as np
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
 #: buffer is 22.4 MB. Deeper levels would not help the warps anyway: rescaling
 #: a float32 sample loses about one bit per split, so ~11 levels per
-#: dimension is what a 24-bit mantissa supports (docs/MATH.md, "Hierarchical sample warping").
+#: dimension is what a 24-bit mantissa supports (docs/MATH.md, section 5).
 DEFAULT_MAX_DEPTH = 11
 
 #: Rec. 709 luminance weights, identical to ``mi.luminance``.

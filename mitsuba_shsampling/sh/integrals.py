@@ -45,7 +45,7 @@ def legendre_antiderivatives(z, order: int) -> dict:
     K~ = K_l^0 for m = 0, sqrt(2) K_l^m otherwise. The integration constant is
     arbitrary but consistent, so only differences are meaningful.
 
-    Recurrences (math.md section 3), with s = sqrt(1 - z^2)::
+    Recurrences (docs/MATH.md, section 4), with s = sqrt(1 - z^2)::
 
         F_m^m     ~ G_m(z),  G_m = antiderivative of s^m
         F_{m+1}^m ~ -s^(m+2) / (m+2)

@@ -18,7 +18,7 @@ Windows provided:
   w(t) = poussin^t with the mildest t in [0, 1] (bisection) for which a given
   zonal lobe is >= -tolerance * peak on a dense grid; t = 1 is safe by
   construction. This is the automatic negativity removal the 2009 paper left
-  as future work (math.md section 7). (A linear blend (1-t) + t * poussin
+  as future work (docs/MATH.md, section 9). (A linear blend (1-t) + t * poussin
   was tried first: it needs t > 0.95 for every Phong lobe measured, because
   the ringing sits where the exact lobe is 0.)
 

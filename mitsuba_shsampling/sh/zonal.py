@@ -7,7 +7,7 @@ Funk-Hecke theorem its SH coefficients are
 
 (P_l the unnormalised Legendre polynomial). ``lambda_l`` is the *attenuation*
 (also: the convolution factor) of the lobe; the zonal coefficients of
-math.md section 6 are z_l = sqrt((2l+1)/(4 pi)) * lambda_l, i.e. the coefficients
+docs/MATH.md, section 8, are z_l = sqrt((2l+1)/(4 pi)) * lambda_l, i.e. the coefficients
 of the lobe aligned with +z. Conventions: real SH, Condon-Shortley phase, z-up,
 index ``l*(l+1)+m`` (see ``sh.basis``). An attenuation vector for n bands is a
 list of n entries, lambda_0 .. lambda_{n-1}; entries are Python floats (shared
@@ -44,7 +44,7 @@ def phong_attenuation(s, n_bands: int) -> list:
     The lobe is ``(s+1)/(2 pi) * max(cos theta, 0)^s`` (unit integral over the
     sphere), so lambda_0 = 1. From the closed form
     lambda_l = (s+1) J(s, l), J(s,l) = sqrt(pi) 2^(-s-1) Gamma(s+1) /
-    [Gamma(1+(s-l)/2) Gamma((s+l+3)/2)] (math.md section 6), the ratio of two
+    [Gamma(1+(s-l)/2) Gamma((s+l+3)/2)] (docs/MATH.md, section 8), the ratio of two
     Gamma pairs two bands apart gives the exact recurrence
 
         lambda_0 = 1,  lambda_1 = (s+1)/(s+2),
@@ -93,7 +93,7 @@ def clamped_cosine_attenuation(n_bands: int) -> list[float]:
 
         lambda_l = 2 pi (-1)^(l/2 + 1) / ((l-1)(l+2)) * l! / (2^l ((l/2)!)^2).
 
-    The zonal coefficients of math.md are z_l = sqrt((2l+1)/(4 pi)) lambda_l
+    The zonal coefficients of docs/MATH.md (section 8) are z_l = sqrt((2l+1)/(4 pi)) lambda_l
     (z_0 = sqrt(pi)/2, z_1 = sqrt(pi/3), z_2 = sqrt(5 pi)/8, z_3 = 0, ...).
     """
     return [math.pi * lam for lam in phong_attenuation(1.0, n_bands)]
