@@ -11,10 +11,10 @@ import os
 import sys
 
 from . import render
+from .report import DEFAULT_CACHE_DIR
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler")
-DEFAULT_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "mitsuba-shsampling")
 
 
 class UsageError(Exception):
@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--variant", default=DEFAULT_VARIANT, help="Mitsuba JIT variant (default %(default)s)")
     common.add_argument("--res", type=_positive, default=128, help="image width and height (default %(default)s)")
     common.add_argument("--ref-spp", type=_positive, default=1024, help="reference spp (default %(default)s)")
-    common.add_argument("--cache-dir", default=DEFAULT_CACHE, help="reference cache (default %(default)s)")
+    common.add_argument("--cache-dir", default=DEFAULT_CACHE_DIR, help="reference cache (default %(default)s)")
     common.add_argument("--no-progress", action="store_true", help="hide progress bars")
 
     compare = sub.add_parser("compare", parents=[common],

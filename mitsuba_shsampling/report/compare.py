@@ -30,7 +30,7 @@ import mitsuba as mi
 import math
 
 from ..scenes import SceneError, scene_envmap
-from . import html, images, metrics, verdict
+from . import DEFAULT_CACHE_DIR, html, images, metrics, verdict
 from .methods import BASELINE, DIRECT, METHODS, MULTI_BOUNCE_BASELINE, Method, available_methods
 from .figures import sampler_demo_figures
 from .plots import convergence_figure
@@ -53,7 +53,7 @@ class CompareSettings:
     max_depth: int = 2
     seed: int = 0
     convergence_max_spp: int | None = None  # None: 4 x spp; 0 disables the sweep
-    cache_dir: str = os.path.join(os.path.expanduser("~"), ".cache", "mitsuba-shsampling")
+    cache_dir: str = DEFAULT_CACHE_DIR
     progress: bool = True
 
 

@@ -12,7 +12,6 @@ by :func:`available_methods`; nothing else has to change when they appear.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 
 import mitsuba as mi
 
@@ -97,27 +96,16 @@ def method_by_name(name: str) -> Method:
 def plugin_status(plugin: str) -> str | None:
     """None if integrator ``plugin`` loads in the active variant, else why not (one line).
 
-    Imports ``mitsuba_shsampling.integrators`` first (and calls its ``register()`` if it has
-    one), so the project's plugins are found as soon as they exist.
+    The package registers its plugins for every variant it is used under
+    (:mod:`mitsuba_shsampling.integrators`); under an unsupported variant loading
+    them raises the reason, which is the last line of Mitsuba's message.
     """
-    try:
-        integrators = importlib.import_module("mitsuba_shsampling.integrators")
-        register = getattr(integrators, "register", None)
-        if callable(register):
-            register()
-    except Exception as err:  # a broken or missing plugin package must not stop the baselines
-        import_note = f"importing mitsuba_shsampling.integrators failed ({type(err).__name__}: {err})"
-    else:
-        import_note = None
     try:
         mi.load_dict({"type": plugin})
     except Exception as err:
-        message = str(err).strip()
-        if "not found" in message:
-            reason = "no such plugin is registered"
-        else:
-            reason = message.splitlines()[0] if message else type(err).__name__
-        return f"integrator '{plugin}' is not available in {mi.variant()} ({import_note or reason})"
+        lines = str(err).strip().splitlines()
+        reason = lines[-1] if lines else type(err).__name__
+        return f"integrator '{plugin}' is not available in {mi.variant()} ({reason})"
     return None
 
 
