@@ -123,3 +123,10 @@ def test_the_docstring_lists_every_parameter_with_its_default(plugin, options):
         row = doc[doc.index(f"* - {field.name}\n"):]
         default = str(field.default).lower() if isinstance(field.default, bool) else str(field.default)
         assert f"(Default: {default})" in row.split("* -")[1], field.name
+
+
+def test_sh_direct_without_bsdf_samples_switches_mis_compensation_off_with_a_warning():
+    with pytest.warns(UserWarning, match="'mis_compensation' is switched off"):
+        options = DirectOptions(bsdf_samples=0)
+    assert not options.mis_compensation
+    assert PathOptions().mis_compensation  # sh_path's BSDF samples continue every path

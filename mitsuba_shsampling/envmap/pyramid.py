@@ -250,7 +250,7 @@ class EnvPyramid:
                             "(expected (H, W+2, 1 or 3); spectral variants are not supported)")
         start = time.perf_counter()
         to_world = mi.AffineTransform4f(params["to_world"])
-        _check_to_world(to_world)
+        _check_to_world(to_world)  # before the emitter's data is touched
         data, sanitised = _sanitise_emitter_data(params, data)
         luminance = self._texel_luminance(data[:, 1:-1, :])
         self._build(luminance, float(dr.ravel(params["scale"])[0]), to_world, max_depth, start,

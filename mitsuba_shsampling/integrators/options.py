@@ -161,11 +161,14 @@ class DirectOptions(ProductOptions):
         if self.emitter_samples + self.bsdf_samples == 0:
             raise OptionError(f"{self.PLUGIN}: parameters 'emitter_samples' and 'bsdf_samples' "
                               "must be >= 0 and not both 0, got 0 and 0")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
         if self.mis_compensation and self.bsdf_samples == 0:
             # The compensated environment is 0 wherever the map is darker than
             # its mean: without BSDF samples nothing would reach those directions.
             warnings.warn(f"{self.PLUGIN}: 'mis_compensation' is switched off because 'bsdf_samples' "
-                          "is 0 (only BSDF sampling covers the directions it leaves out)", stacklevel=5)
+                          "is 0 (only BSDF sampling covers the directions it leaves out)", stacklevel=3)
             object.__setattr__(self, "mis_compensation", False)
 
 
