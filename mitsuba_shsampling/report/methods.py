@@ -1,12 +1,11 @@
 """The rendering methods a comparison runs: one small declarative entry each.
 
 A :class:`Method` says which integrator to load, how the scene's envmap must be
-rebuilt for it (``mis_compensation``) and how many shading
-rays one pixel sample costs, so that equal-sample comparisons count rays
-(see /work/shared/design/evaluation.md). Methods that need a plugin this
-process cannot load (the project's ``sh_direct``/``sh_path`` before they
-exist, or on a variant they are not registered for) are left out with a note
-by :func:`available_methods`; nothing else has to change when they appear.
+rebuilt for it (``mis_compensation``) and how many shading rays one pixel sample
+costs, so that equal-sample comparisons count rays (an emitter or product sample
+plus a BSDF sample are 2 rays, as ``direct`` 1+1). Methods whose plugin this
+process cannot load (e.g. ``sh_direct`` under an unsupported variant) are left
+out with a note by :func:`available_methods`.
 """
 
 from __future__ import annotations
@@ -58,7 +57,7 @@ class Method:
         return mi.load_dict(desc)
 
 
-#: Every method of evaluation.md, in report order.
+#: Every method a comparison can run, in report order.
 METHODS: tuple[Method, ...] = (
     Method("direct", "direct 1+1 (envmap + BSDF, MIS)", {"type": "direct"}),
     Method("direct_misc", "direct 1+1, envmap with MIS compensation", {"type": "direct"},
