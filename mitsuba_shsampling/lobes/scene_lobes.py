@@ -163,6 +163,11 @@ class SceneLobes:
                        else "it is anisotropic or transmissive")
             if support == "unsupported":
                 self.has_unsupported_lobes = True
+                # An emitter's own shape gets a black BSDF by default: nothing
+                # to warn about (its lanes still get Mitsuba's sampling).
+                if shape.is_emitter() and why.startswith("its fitted lobe"):
+                    row_of_id[key] = 0
+                    continue
                 warnings.warn(
                     f"SceneLobes: BSDF '{bsdf.id()}' ({bsdf.class_name()}, flags "
                     f"{int(bsdf.flags()):#x}): {why}; its surfaces use Mitsuba's own "
