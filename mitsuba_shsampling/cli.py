@@ -1,4 +1,4 @@
-"""Command line: ``mitsuba-shsampling compare|bench|render`` (also ``python -m mitsuba_shsampling``).
+"""Command line: ``mitsuba-shsampling compare|bench|render|sweep`` (also ``python -m mitsuba_shsampling``).
 
 Exit codes: 0 success, 2 bad input (missing scene or map, unknown method or
 variant, invalid option), 1 any other failure.
@@ -11,6 +11,7 @@ import os
 import sys
 
 from . import render
+from .sweep import command as sweep
 from .report import DEFAULT_CACHE_DIR
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
@@ -67,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--max-spp", type=_positive, default=None, help="largest spp of the sweep (default 256, quick 16)")
 
     render.add_parser(sub, DEFAULT_VARIANT)
+    sweep.add_arguments(sub.add_parser("sweep", help="run compare over a grid of scenes x maps x samplers (Dask)"))
     return parser
 
 
@@ -194,7 +196,8 @@ def _user_error(err: BaseException) -> str | None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mitsuba-shsampling`` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
-    commands = {"compare": _compare, "bench": _bench, "render": lambda a: render.main(a, _set_variant)}
+    commands = {"compare": _compare, "bench": _bench, "render": lambda a: render.main(a, _set_variant),
+                "sweep": sweep.command}
     try:
         return commands[args.command](args)
     except UsageError as err:

@@ -1,0 +1,314 @@
+"""The aggregate report of a sweep: one summary row per cell, heat maps, JSON/CSV/HTML.
+
+Per cell (read from its compare ``report.json``; every field is optional, so reports
+of older or newer compare versions still summarise):
+
+- the **winner**: the method of highest equal-time efficiency (1 / (MSE x time));
+- the **best Mitsuba strategy**: of :data:`MITSUBA_METHODS` present, the one of highest
+  equal-time efficiency (for efficiency ratios) and the one of lowest equal-spp MSE (for
+  MSE ratios), as ``scripts/results_table.py`` chooses them;
+- per method, the equal-time efficiency ratio and the equal-spp MSE ratio against those
+  bests, with an uncertainty (one standard error) when the report lists per-pass MSEs
+  (``mse_per_pass``): relative standard errors of the two MSEs added in quadrature, wall-time
+  noise not included;
+- the bias status: ``bias_ok`` of the equal-spp and equal-time renders (or ``not bias.flagged``).
+
+Heat maps (scene x map, one per sampler) show the equal-time efficiency ratio of
+:data:`HEATMAP_METHOD` against the best Mitsuba strategy on a log colour scale.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import io
+import json
+import math
+import os
+
+import numpy as np
+
+#: Mitsuba's own strategies among which the best is taken (``bsdf_only`` is never the best).
+MITSUBA_METHODS = ("direct", "direct_misc", "env_only")
+#: The method whose efficiency ratio the heat maps show.
+HEATMAP_METHOD = "sh_direct"
+#: Marks the JSON as a sweep aggregate (``scripts/results_table.py`` reads both kinds).
+KIND = "mitsuba-shsampling sweep aggregate"
+
+
+def _number(entry, key: str) -> float | None:
+    value = entry.get(key) if isinstance(entry, dict) else None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def mse_rel_stderr(entry: dict) -> float | None:
+    """Relative standard error of the mean MSE from ``mse_per_pass`` (None if not reported)."""
+    per_pass = entry.get("mse_per_pass") if isinstance(entry, dict) else None
+    if not isinstance(per_pass, list) or len(per_pass) < 2:
+        return None
+    values = np.array([v for v in per_pass if isinstance(v, (int, float))], dtype=np.float64)
+    if len(values) != len(per_pass) or not np.all(np.isfinite(values)) or values.mean() <= 0:
+        return None
+    return float(values.std(ddof=1) / math.sqrt(len(values)) / values.mean())
+
+
+def _bias_ok(entry) -> bool | None:
+    if not isinstance(entry, dict):
+        return None
+    if isinstance(entry.get("bias_ok"), bool):
+        return entry["bias_ok"]
+    bias = entry.get("bias")
+    if isinstance(bias, dict) and isinstance(bias.get("flagged"), bool):
+        return not bias["flagged"]
+    return None
+
+
+def _ratio(value: float | None, value_rse: float | None, best: float | None, best_rse: float | None,
+           same: bool, invert: bool = False) -> tuple[float | None, float | None]:
+    """value / best (or best / value) and its one-sigma uncertainty."""
+    if value is None or best is None or value <= 0 or best <= 0:
+        return None, None
+    ratio = best / value if invert else value / best
+    if same:
+        return ratio, 0.0
+    if value_rse is None or best_rse is None:
+        return ratio, None
+    return ratio, ratio * math.hypot(value_rse, best_rse)
+
+
+def summarise_report(report: dict) -> dict:
+    """Summary of a one-scene, one-sampler compare report (see the module docstring).
+
+    :returns: ``winner``, ``best_mitsuba_efficiency``, ``best_mitsuba_mse``, ``bias`` (``"ok"``,
+        ``"flagged: ..."`` or ``"unknown"``), ``notes`` and per method ``methods[name]`` with
+        ``equal_spp_mse``, ``equal_time_efficiency``, ``mse_ratio_vs_best_mitsuba`` (+ ``_err``),
+        ``efficiency_ratio_vs_best_mitsuba`` (+ ``_err``), ``time_ratio_vs_direct``, ``bias_ok``.
+        Missing values are None; a report without any run gives ``{"error": ...}``.
+    """
+    scenes = report.get("scenes") if isinstance(report, dict) else None
+    runs = scenes[0].get("runs") if isinstance(scenes, list) and scenes and isinstance(scenes[0], dict) else None
+    methods = runs[0].get("methods") if isinstance(runs, list) and runs and isinstance(runs[0], dict) else None
+    if not isinstance(methods, dict) or not methods:
+        return {"error": "the cell's report has no rendered method"}
+
+    spp = {n: e.get("equal_spp") if isinstance(e.get("equal_spp"), dict) else {} for n, e in methods.items()}
+    eqt = {n: e.get("equal_time") if isinstance(e.get("equal_time"), dict) else {} for n, e in methods.items()}
+    eff = {n: _number(eqt[n], "efficiency") for n in methods}
+    mse = {n: _number(spp[n], "mse") for n in methods}
+    mitsuba = [n for n in MITSUBA_METHODS if n in methods]
+    best_eff = max((n for n in mitsuba if eff[n] is not None), key=lambda n: eff[n], default=None)
+    best_mse = min((n for n in mitsuba if mse[n] is not None), key=lambda n: mse[n], default=None)
+    winner = max((n for n in methods if eff[n] is not None), key=lambda n: eff[n], default=None)
+    direct_time = _number(spp.get("direct", {}), "time_s")
+
+    summary = {}
+    for name in methods:
+        eff_ratio, eff_err = _ratio(eff[name], mse_rel_stderr(eqt[name]),
+                                    eff.get(best_eff), mse_rel_stderr(eqt.get(best_eff, {})),
+                                    same=name == best_eff)
+        mse_ratio, mse_err = _ratio(mse[name], mse_rel_stderr(spp[name]),
+                                    mse.get(best_mse), mse_rel_stderr(spp.get(best_mse, {})),
+                                    same=name == best_mse)
+        time = _number(spp[name], "time_s")
+        biases = [_bias_ok(spp[name]), _bias_ok(eqt[name])]
+        summary[name] = {
+            "equal_spp_mse": mse[name], "equal_time_efficiency": eff[name],
+            "mse_ratio_vs_best_mitsuba": mse_ratio, "mse_ratio_vs_best_mitsuba_err": mse_err,
+            "efficiency_ratio_vs_best_mitsuba": eff_ratio, "efficiency_ratio_vs_best_mitsuba_err": eff_err,
+            "time_ratio_vs_direct": time / direct_time if time is not None and direct_time else None,
+            "bias_ok": False if False in biases else (True if all(b is True for b in biases) else None),
+        }
+    flagged = [n for n, s in summary.items() if s["bias_ok"] is False]
+    bias = ("flagged: " + ", ".join(flagged) if flagged
+            else "ok" if all(s["bias_ok"] for s in summary.values()) else "unknown")
+    notes = scenes[0].get("notes") if isinstance(scenes[0].get("notes"), list) else []
+    return {"winner": winner, "best_mitsuba_efficiency": best_eff, "best_mitsuba_mse": best_mse,
+            "bias": bias, "notes": [str(n) for n in notes], "methods": summary}
+
+
+def cell_row(cell, key: str, record: dict | None, report: dict | None, out: str) -> dict:
+    """The aggregate entry of one grid cell (status ``ok``, ``failed`` or ``missing``)."""
+    from .store import CellStore
+
+    folder = os.path.relpath(CellStore(out).folder(cell, key), out)
+    row = {"scene": cell.scene.name, "map": cell.map.name, "sampler": cell.sampler, "key": key,
+           "folder": folder, "status": record.get("status", "missing") if record else "missing",
+           "error": record.get("error") if record else None,
+           "wall_time_s": record.get("wall_time_s") if record else None,
+           "host": record.get("host") if record else None,
+           "drjit_threads": record.get("drjit_threads") if record else None}
+    if row["status"] == "ok":
+        summary = summarise_report(report) if report is not None else {"error": "report.json is missing"}
+        if "error" in summary:
+            row.update(status="failed", error=summary["error"])
+        else:
+            row.update(summary, report=os.path.join(folder, "report.json"),
+                       index_html=os.path.join(folder, "index.html"))
+    return row
+
+
+CSV_FIELDS = ["scene", "map", "sampler", "status", "method", "winner", "best_mitsuba_efficiency",
+              "best_mitsuba_mse", "equal_spp_mse", "mse_ratio_vs_best_mitsuba",
+              "mse_ratio_vs_best_mitsuba_err", "equal_time_efficiency",
+              "efficiency_ratio_vs_best_mitsuba", "efficiency_ratio_vs_best_mitsuba_err",
+              "time_ratio_vs_direct", "bias_ok", "error", "folder"]
+
+
+def write_csv(path: str, rows: list[dict]) -> None:
+    """One line per cell and method (one line with the error for a failed or missing cell)."""
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            if row["status"] != "ok":
+                writer.writerow(row)
+                continue
+            for name, values in row["methods"].items():
+                writer.writerow({**row, **values, "method": name})
+
+
+def heatmap_png(rows: list[dict], scenes: list[str], maps: list[str], sampler: str,
+                method: str = HEATMAP_METHOD) -> bytes | None:
+    """Scene x map heat map of ``method``'s equal-time efficiency ratio vs the best Mitsuba strategy.
+
+    Log2 colour scale centred on 1 (blue: ``method`` more efficient, red: less); cells without
+    a value (failed, missing, method absent) are grey. None if no cell has a value.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    values = np.full((len(scenes), len(maps)), np.nan)
+    errors = np.full_like(values, np.nan)
+    status = {}
+    for row in rows:
+        if row["sampler"] != sampler:
+            continue
+        i, j = scenes.index(row["scene"]), maps.index(row["map"])
+        status[i, j] = row["status"]
+        entry = row.get("methods", {}).get(method, {})
+        if entry.get("efficiency_ratio_vs_best_mitsuba") is not None:
+            values[i, j] = entry["efficiency_ratio_vs_best_mitsuba"]
+            if entry.get("efficiency_ratio_vs_best_mitsuba_err") is not None:
+                errors[i, j] = entry["efficiency_ratio_vs_best_mitsuba_err"]
+    if np.all(np.isnan(values)):
+        return None
+    log = np.log2(values)
+    span = max(1.0, float(np.nanmax(np.abs(log))))
+    cmap = plt.get_cmap("RdBu").copy()
+    cmap.set_bad("#cccccc")
+    fig, ax = plt.subplots(figsize=(1.3 * len(maps) + 3, 0.45 * len(scenes) + 1.8))
+    image = ax.imshow(np.ma.masked_invalid(log), cmap=cmap, vmin=-span, vmax=span, aspect="auto")
+    for (i, j), _ in np.ndenumerate(values):
+        if np.isnan(values[i, j]):
+            text = status.get((i, j), "missing") if status.get((i, j)) != "ok" else "n/a"
+        else:
+            text = f"{values[i, j]:.2f}" + (f"\n±{errors[i, j]:.2f}" if not np.isnan(errors[i, j]) else "")
+        ax.text(j, i, text, ha="center", va="center", fontsize=7,
+                color="white" if abs(np.nan_to_num(log[i, j])) > 0.6 * span else "black")
+    ax.set_xticks(range(len(maps)), maps, rotation=30, ha="right", fontsize=8)
+    ax.set_yticks(range(len(scenes)), scenes, fontsize=8)
+    bar = fig.colorbar(image, ax=ax)
+    ticks = np.arange(-math.floor(span), math.floor(span) + 1)
+    bar.set_ticks(ticks, labels=[f"{2.0 ** t:g}x" for t in ticks])
+    ax.set_title(f"{method} / best Mitsuba strategy, equal-time efficiency ({sampler})", fontsize=9)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+def _fmt(value, err=None, digits: int = 2) -> str:
+    if value is None:
+        return "–"
+    text = f"{value:.{digits}f}"
+    return text + (f" ± {err:.{digits}f}" if err is not None and err > 0 else "")
+
+
+def write_html(path: str, aggregate: dict) -> None:
+    """``index.html``: heat maps, the summary table, failed cells with their errors."""
+    e = html.escape
+    rows = aggregate["cells"]
+    shown = [m for m in (aggregate["grid"]["methods"] or []) if m not in MITSUBA_METHODS] or [HEATMAP_METHOD]
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "failed", "missing")}
+    parts = ["<!DOCTYPE html><html><head><meta charset='utf-8'><title>sweep</title><style>",
+             "body{font-family:sans-serif;margin:1.5em;color:#222}table{border-collapse:collapse;"
+             "font-size:.85em}th,td{border:1px solid #bbb;padding:3px 7px;text-align:right}"
+             "th{background:#eee}td.name{text-align:left}.bad{color:#b00;font-weight:bold}"
+             "pre{background:#f6f6f6;padding:.5em;font-size:.8em;white-space:pre-wrap}</style></head><body>",
+             f"<h1>Sweep of {e(os.path.basename(aggregate['grid']['path']))}</h1>",
+             f"<p>{len(rows)} cells: {counts['ok']} ok, {counts['failed']} failed, {counts['missing']} "
+             f"missing. Code {e(aggregate['code_version'])}. Settings: "
+             f"<code>{e(json.dumps(aggregate['grid']['settings']))}</code>, methods "
+             f"<code>{e(', '.join(aggregate['grid']['methods'] or ['compare default']))}</code>.</p>",
+             "<p>Ratios are against the best of Mitsuba's strategies in the same cell (of "
+             f"{', '.join(MITSUBA_METHODS)}): equal-time efficiency ratio (&gt; 1: better) and "
+             "equal-spp MSE ratio (&lt; 1: better); ± one standard error where the cell's report "
+             "lists per-pass MSEs.</p>"]
+    for sampler, png in aggregate["heatmaps"].items():
+        parts.append(f"<h2>{e(HEATMAP_METHOD)}, {e(sampler)} sampler</h2><img src='{e(png)}'>")
+    head = "".join(f"<th>{e(m)} eff. / best</th><th>{e(m)} MSE / best</th>" for m in shown)
+    parts.append("<h2>Cells</h2><table><tr><th>scene</th><th>map</th><th>sampler</th><th>winner</th>"
+                 f"<th>best Mitsuba (eff. / MSE)</th>{head}<th>bias</th><th>report</th></tr>")
+    for r in rows:
+        cells = [f"<td class=name>{e(r['scene'])}</td><td class=name>{e(r['map'])}</td>"
+                 f"<td class=name>{e(r['sampler'])}</td>"]
+        if r["status"] != "ok":
+            cells.append(f"<td class='name bad' colspan={3 + 2 * len(shown)}>{e(r['status'])}: "
+                         f"{e(r['error'] or '')}</td><td></td>")
+        else:
+            cells.append(f"<td class=name>{e(r['winner'] or '–')}</td><td class=name>"
+                         f"{e(r['best_mitsuba_efficiency'] or '–')} / {e(r['best_mitsuba_mse'] or '–')}</td>")
+            for m in shown:
+                v = r["methods"].get(m, {})
+                cells.append(f"<td>{_fmt(v.get('efficiency_ratio_vs_best_mitsuba'), v.get('efficiency_ratio_vs_best_mitsuba_err'))}</td>"
+                             f"<td>{_fmt(v.get('mse_ratio_vs_best_mitsuba'), v.get('mse_ratio_vs_best_mitsuba_err'))}</td>")
+            cls = "name" if r["bias"] == "ok" else "name bad"
+            cells.append(f"<td class='{cls}'>{e(r['bias'])}</td>"
+                         f"<td class=name><a href='{e(r['index_html'])}'>report</a></td>")
+        parts.append("<tr>" + "".join(cells) + "</tr>")
+    parts.append("</table>")
+    failed = [r for r in rows if r["status"] == "failed"]
+    if failed:
+        parts.append("<h2>Failed cells</h2>")
+        for r in failed:
+            parts.append(f"<p><b>{e(r['scene'])}/{e(r['map'])}/{e(r['sampler'])}</b> "
+                         f"(<code>{e(r['folder'])}/cell.json</code> has the traceback)</p>"
+                         f"<pre>{e(r['error'] or '')}</pre>")
+    parts.append("</body></html>")
+    with open(path, "w") as f:
+        f.write("\n".join(parts))
+
+
+def write_aggregate(out: str, grid, entries: list[tuple], code_version: str) -> dict[str, str]:
+    """Write ``aggregate.json``, ``aggregate.csv``, the heat maps and ``index.html`` into ``out``.
+
+    :param entries: per grid cell ``(cell, key, cell.json record or None, report or None)``.
+    :returns: the paths written, by kind (``json``, ``csv``, ``html``).
+    """
+    os.makedirs(out, exist_ok=True)
+    rows = [cell_row(cell, key, record, report, out) for cell, key, record, report in entries]
+    scenes = [s.name for s in grid.scenes]
+    maps = [m.name for m in grid.maps]
+    heatmaps = {}
+    for sampler in grid.samplers:
+        png = heatmap_png(rows, scenes, maps, sampler)
+        if png is not None:
+            name = f"heatmap_{sampler}.png"
+            with open(os.path.join(out, name), "wb") as f:
+                f.write(png)
+            heatmaps[sampler] = name
+    aggregate = {"kind": KIND, "grid": grid.describe(), "code_version": code_version,
+                 "heatmap_method": HEATMAP_METHOD, "mitsuba_methods": list(MITSUBA_METHODS),
+                 "heatmaps": heatmaps, "cells": rows}
+    paths = {"json": os.path.join(out, "aggregate.json"), "csv": os.path.join(out, "aggregate.csv"),
+             "html": os.path.join(out, "index.html")}
+    with open(paths["json"], "w") as f:
+        json.dump(aggregate, f, indent=1)
+    write_csv(paths["csv"], rows)
+    write_html(paths["html"], aggregate)
+    return paths
