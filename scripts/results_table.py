@@ -1,6 +1,7 @@
 """Summarise `compare` reports as the README's results table (Markdown).
 
     python scripts/results_table.py report_a/report.json report_b/report.json ...
+    python scripts/results_table.py sweep_out/aggregate.json     # every finished cell of a sweep
 
 For every scene x sampler, the SH method is set against the *best* of
 Mitsuba's own strategies in the same run (lowest expected MSE at equal samples,
@@ -16,6 +17,21 @@ import os
 
 MITSUBA_METHODS = ("direct", "direct_misc", "env_only")
 SH_METHOD = "sh_direct"
+#: The ``kind`` of a sweep's aggregate.json (mitsuba_shsampling/sweep/aggregate.py: KIND).
+SWEEP_AGGREGATE = "mitsuba-shsampling sweep aggregate"
+
+
+def reports(path: str):
+    """The compare reports a file holds: a report.json itself, or each finished cell of a sweep."""
+    with open(path) as f:
+        data = json.load(f)
+    if data.get("kind") != SWEEP_AGGREGATE:
+        yield data
+        return
+    for cell in data["cells"]:
+        if cell.get("status") == "ok" and cell.get("report"):
+            with open(os.path.join(os.path.dirname(os.path.abspath(path)), cell["report"])) as f:
+                yield json.load(f)
 
 
 def envmap_name(report: dict) -> str:
@@ -55,7 +71,7 @@ def main() -> None:
     parser.add_argument("reports", nargs="+")
     parser.add_argument("--json", help="also write the rows as JSON")
     args = parser.parse_args()
-    table = [r for path in args.reports for r in rows(json.load(open(path)))]
+    table = [r for path in args.reports for report in reports(path) for r in rows(report)]
     print("| map | scene | MSE / direct | MSE / best Mitsuba (which) | efficiency / direct "
           "| efficiency / best Mitsuba (which) | time / direct | bias ok | tail ok |")
     print("|---|---|---|---|---|---|---|---|---|")

@@ -198,8 +198,7 @@ def heatmap_png(rows: list[dict], scenes: list[str], maps: list[str], sampler: s
         return None
     log = np.log2(values)
     span = max(1.0, float(np.nanmax(np.abs(log))))
-    cmap = plt.get_cmap("RdBu").copy()
-    cmap.set_bad("#cccccc")
+    cmap = plt.get_cmap("RdBu").with_extremes(bad="#cccccc")
     fig, ax = plt.subplots(figsize=(1.3 * len(maps) + 3, 0.45 * len(scenes) + 1.8))
     image = ax.imshow(np.ma.masked_invalid(log), cmap=cmap, vmin=-span, vmax=span, aspect="auto")
     for (i, j), _ in np.ndenumerate(values):

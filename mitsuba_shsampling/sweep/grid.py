@@ -29,7 +29,11 @@ from __future__ import annotations
 import dataclasses
 import glob
 import os
-import tomllib
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
 
 from .. import scenes as builtin
 from ..cli import DEFAULT_VARIANT, SAMPLERS
