@@ -28,6 +28,8 @@ import os
 
 import numpy as np
 
+from .store import CellStore
+
 #: Mitsuba's own strategies among which the best is taken (``bsdf_only`` is never the best).
 MITSUBA_METHODS = ("direct", "direct_misc", "env_only")
 #: The method whose efficiency ratio the heat maps show.
@@ -130,8 +132,6 @@ def summarise_report(report: dict) -> dict:
 
 def cell_row(cell, key: str, record: dict | None, report: dict | None, out: str) -> dict:
     """The aggregate entry of one grid cell (status ``ok``, ``failed`` or ``missing``)."""
-    from .store import CellStore
-
     folder = os.path.relpath(CellStore(out).folder(cell, key), out)
     row = {"scene": cell.scene.name, "map": cell.map.name, "sampler": cell.sampler, "key": key,
            "folder": folder, "status": record.get("status", "missing") if record else "missing",
