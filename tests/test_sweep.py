@@ -38,10 +38,10 @@ def write_grid(path, scenes_, maps, **settings) -> str:
 
 
 def copy_scene(src_name: str, folder, name: str | None = None, replace: tuple[str, str] | None = None) -> str:
-    """Copy a built-in scene (and its include folder) into ``folder``, optionally editing its text."""
-    os.makedirs(folder / "include", exist_ok=True)
-    for f in os.listdir(os.path.join(scenes.SCENES_DIR, "include")):
-        shutil.copy(os.path.join(scenes.SCENES_DIR, "include", f), folder / "include" / f)
+    """Copy a built-in scene (with the include and texture folders it refers to) into ``folder``,
+    optionally editing its text."""
+    for sub in ("include", "textures"):
+        shutil.copytree(os.path.join(scenes.SCENES_DIR, sub), folder / sub, dirs_exist_ok=True)
     text = open(scenes.builtin_scenes()[src_name]).read()
     if replace:
         assert replace[0] in text
@@ -247,7 +247,7 @@ def test_aggregate_numbers_are_those_of_compare_on_the_same_cell(first_sweep, tm
     assert row["methods"]["sh_direct"]["efficiency_ratio_vs_best_mitsuba"] == pytest.approx(
         eff["sh_direct"] / eff["direct"], rel=1e-12)
     for m in METHODS:
-        assert row["methods"][m]["equal_spp_mse"] == stored[m]["equal_spp"]["mse"]
+        assert row["methods"][m]["equal_spp_mse"] == stored[m]["equal_spp"]["error"]["mse"]
 
     # ... and that report is what compare renders for the cell's settings (equal-spp renders
     # are seeded; equal-time spp and all timings depend on the run, so they are not compared).
@@ -257,8 +257,11 @@ def test_aggregate_numbers_are_those_of_compare_on_the_same_cell(first_sweep, tm
     methods = direct["scenes"][0]["runs"][0]["methods"]
     for m in METHODS:
         assert methods[m]["equal_spp"]["spp"] == stored[m]["equal_spp"]["spp"]
-        assert methods[m]["equal_spp"]["mse"] == pytest.approx(row["methods"][m]["equal_spp_mse"], rel=1e-5)
-    assert direct["settings"]["res"] == json.load(open(os.path.join(out, row["report"])))["settings"]["res"]
+        assert methods[m]["equal_spp"]["error"]["mse"] == pytest.approx(row["methods"][m]["equal_spp_mse"], rel=1e-5)
+    local = ("out", "cache_dir", "progress")
+    settings = json.load(open(os.path.join(out, row["report"])))["settings"]
+    assert {k: v for k, v in direct["settings"].items() if k not in local} == \
+        {k: v for k, v in settings.items() if k not in local}
 
 
 def test_sweep_runs_on_a_cluster_given_by_scheduler_address(tmp_path):
@@ -302,28 +305,47 @@ def _report(methods: dict) -> dict:
     return {"scenes": [{"notes": [], "runs": [{"methods": methods}]}]}
 
 
-def test_summary_picks_the_best_mitsuba_strategy_and_propagates_per_pass_mse_errors():
-    def entry(mse, time, per_pass=None, bias_ok=True):
-        e = {"mse": mse, "time_s": time, "efficiency": 1 / (mse * time), "bias_ok": bias_ok}
-        if per_pass is not None:
-            e["mse_per_pass"] = per_pass
-        return {"equal_spp": dict(e), "equal_time": dict(e)}
+def _entry(per_pass, time=1.0, flagged=False, tail_worse=False):
+    """A report entry in compare's format: expected MSE over passes, efficiency, bias, tails."""
+    mse = float(np.mean(per_pass))
+    e = {"error": {"mse": mse, "mse_per_pass": list(per_pass)}, "time_s": time,
+         "efficiency": 1 / (mse * time), "bias": {"flagged": flagged}, "tail_worse_than_baseline": tail_worse}
+    return {"equal_spp": e, "equal_time": e}
 
+
+def test_summary_picks_the_best_mitsuba_strategy_and_reports_flags():
     summary = aggregate.summarise_report(_report({
-        "direct": entry(2.0, 1.0, [1.0, 3.0]),
-        "direct_misc": entry(1.0, 1.0, [0.9, 1.1]),
-        "bsdf_only": entry(0.1, 0.1, [0.1, 0.1]),  # never a "best Mitsuba strategy"
-        "sh_direct": entry(0.5, 1.0, [0.4, 0.6], bias_ok=False),
+        "direct": _entry([1.0, 3.0]),
+        "direct_misc": _entry([0.9, 1.1]),
+        "bsdf_only": _entry([0.1, 0.1], time=0.1),  # never a "best Mitsuba strategy"
+        "sh_direct": _entry([0.4, 0.6], flagged=True, tail_worse=True),
     }))
     assert summary["best_mitsuba_efficiency"] == summary["best_mitsuba_mse"] == "direct_misc"
     assert summary["winner"] == "bsdf_only"
     sh = summary["methods"]["sh_direct"]
     assert sh["efficiency_ratio_vs_best_mitsuba"] == pytest.approx(2.0)
-    rel = lambda values: np.std(values, ddof=1) / np.sqrt(len(values)) / np.mean(values)  # noqa: E731
-    assert sh["efficiency_ratio_vs_best_mitsuba_err"] == pytest.approx(2.0 * np.hypot(rel([0.4, 0.6]), rel([0.9, 1.1])))
     assert sh["mse_ratio_vs_best_mitsuba"] == pytest.approx(0.5)
+    assert sh["time_ratio_vs_direct"] == pytest.approx(1.0)
     assert summary["methods"]["direct_misc"]["efficiency_ratio_vs_best_mitsuba_err"] == 0.0
+    assert sh["bias_ok"] is False and sh["tail_ok"] is False
+    assert summary["methods"]["direct"]["bias_ok"] is True and summary["methods"]["direct"]["tail_ok"] is True
     assert summary["bias"] == "flagged: sh_direct"
+
+
+def test_ratio_uncertainty_cancels_what_paired_passes_share():
+    rng = np.random.default_rng(3)
+    best = rng.uniform(0.5, 1.5, 64)
+    # Passes that share a seed share their luck: a method that is the best one scaled has no
+    # uncertainty in the ratio, however noisy each is.
+    assert aggregate.ratio_stderr(0.5, 0.5 * best, best) == pytest.approx(0.0, abs=1e-12)
+    # Unpaired (different pass counts): the two relative standard errors add in quadrature.
+    other = rng.uniform(0.2, 0.8, 32)
+    rse = lambda v: v.std(ddof=1) / np.sqrt(len(v)) / v.mean()  # noqa: E731
+    ratio = other.mean() / best.mean()
+    assert aggregate.ratio_stderr(ratio, other, best) == pytest.approx(ratio * np.hypot(rse(other), rse(best)))
+    summary = aggregate.summarise_report(_report({"direct": _entry(list(best)), "sh_direct": _entry(list(other))}))
+    assert summary["methods"]["sh_direct"]["mse_ratio_vs_best_mitsuba_err"] == pytest.approx(
+        ratio * np.hypot(rse(other), rse(best)))
 
 
 def test_summary_reads_missing_fields_as_unknown_instead_of_failing():

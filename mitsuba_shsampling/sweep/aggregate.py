@@ -9,9 +9,12 @@ of older or newer compare versions still summarise):
   MSE ratios), as ``scripts/results_table.py`` chooses them;
 - per method, the equal-time efficiency ratio and the equal-spp MSE ratio against those
   bests, with an uncertainty (one standard error) when the report lists per-pass MSEs
-  (``mse_per_pass``): relative standard errors of the two MSEs added in quadrature, wall-time
-  noise not included;
-- the bias status: ``bias_ok`` of the equal-spp and equal-time renders (or ``not bias.flagged``).
+  (``error.mse_per_pass``): delta method over the paired passes, wall-time noise not included;
+- the bias status (``bias.flagged``, or ``bias_ok`` of older reports) and the tail status
+  (``tail_worse_than_baseline``) of the equal-spp and equal-time renders;
+- the report's own verdict where it has one: the project's best method against the best of
+  Mitsuba's strategies, ratio and 90 % paired-bootstrap interval (its Mitsuba set also counts
+  ``bsdf_only``).
 
 Heat maps (scene x map, one per sampler) show the equal-time efficiency ratio of
 :data:`HEATMAP_METHOD` against the best Mitsuba strategy on a log colour scale.
@@ -45,60 +48,86 @@ def _number(entry, key: str) -> float | None:
     return float(value)
 
 
-def mse_rel_stderr(entry: dict) -> float | None:
-    """Relative standard error of the mean MSE from ``mse_per_pass`` (None if not reported)."""
-    per_pass = entry.get("mse_per_pass") if isinstance(entry, dict) else None
-    if not isinstance(per_pass, list) or len(per_pass) < 2:
-        return None
-    values = np.array([v for v in per_pass if isinstance(v, (int, float))], dtype=np.float64)
-    if len(values) != len(per_pass) or not np.all(np.isfinite(values)) or values.mean() <= 0:
-        return None
-    return float(values.std(ddof=1) / math.sqrt(len(values)) / values.mean())
+def _error(entry: dict) -> dict:
+    """Where a report entry keeps its MSE statistics (``error`` since the expected-error report)."""
+    return entry["error"] if isinstance(entry.get("error"), dict) else entry
 
 
-def _bias_ok(entry) -> bool | None:
+def mse_per_pass(entry: dict) -> np.ndarray | None:
+    """The entry's per-pass MSEs (K >= 2 finite values), or None if the report has none."""
+    values = _error(entry).get("mse_per_pass")
+    if not isinstance(values, list) or len(values) < 2:
+        return None
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        return None
+    values = np.asarray(values, dtype=np.float64)
+    return values if np.all(np.isfinite(values)) and values.mean() > 0 else None
+
+
+def ratio_stderr(ratio: float, a: np.ndarray | None, b: np.ndarray | None) -> float | None:
+    """One standard error of ``ratio`` = mean(a) / mean(b) (or its inverse) from per-pass values.
+
+    Delta method. Passes k of two methods of one run share a seed, so for equally many passes the
+    covariance of the pairs is subtracted; otherwise the two are taken as independent.
+    """
+    if a is None or b is None:
+        return None
+    var_a, var_b = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+    cov = float(np.cov(a, b)[0, 1]) / len(a) if len(a) == len(b) else 0.0
+    rel_var = var_a / a.mean() ** 2 + var_b / b.mean() ** 2 - 2 * cov / (a.mean() * b.mean())
+    return ratio * math.sqrt(max(rel_var, 0.0))
+
+
+def _flag(entry, key: str, inverted_key: str | None = None) -> bool | None:
+    """``entry[key]`` as a bool; with ``inverted_key``, ``not entry[inverted_key]["flagged"]`` instead."""
     if not isinstance(entry, dict):
         return None
-    if isinstance(entry.get("bias_ok"), bool):
-        return entry["bias_ok"]
-    bias = entry.get("bias")
-    if isinstance(bias, dict) and isinstance(bias.get("flagged"), bool):
-        return not bias["flagged"]
+    if isinstance(entry.get(key), bool):
+        return entry[key]
+    nested = entry.get(inverted_key) if inverted_key else None
+    if isinstance(nested, dict) and isinstance(nested.get("flagged"), bool):
+        return not nested["flagged"]
     return None
 
 
-def _ratio(value: float | None, value_rse: float | None, best: float | None, best_rse: float | None,
-           same: bool, invert: bool = False) -> tuple[float | None, float | None]:
-    """value / best (or best / value) and its one-sigma uncertainty."""
-    if value is None or best is None or value <= 0 or best <= 0:
-        return None, None
-    ratio = best / value if invert else value / best
-    if same:
-        return ratio, 0.0
-    if value_rse is None or best_rse is None:
-        return ratio, None
-    return ratio, ratio * math.hypot(value_rse, best_rse)
+def _all(values: list[bool | None]) -> bool | None:
+    """False if any is False, True if all are True, else None (unknown)."""
+    return False if False in values else (True if all(v is True for v in values) else None)
+
+
+def _verdict(report: dict, scene: str, sampler: str) -> dict | None:
+    """The report's own verdict row of the direct-lighting family (its bootstrap intervals)."""
+    for row in report.get("verdict") or []:
+        if isinstance(row, dict) and row.get("scene") == scene and row.get("sampler") == sampler \
+                and row.get("family", "direct") == "direct":
+            keep = ("winner", "numerator", "denominator", "ratio", "low", "high")
+            return {kind: {k: row[kind].get(k) for k in keep} for kind in ("equal_spp", "equal_time")
+                    if isinstance(row.get(kind), dict)}
+    return None
 
 
 def summarise_report(report: dict) -> dict:
     """Summary of a one-scene, one-sampler compare report (see the module docstring).
 
     :returns: ``winner``, ``best_mitsuba_efficiency``, ``best_mitsuba_mse``, ``bias`` (``"ok"``,
-        ``"flagged: ..."`` or ``"unknown"``), ``notes`` and per method ``methods[name]`` with
-        ``equal_spp_mse``, ``equal_time_efficiency``, ``mse_ratio_vs_best_mitsuba`` (+ ``_err``),
-        ``efficiency_ratio_vs_best_mitsuba`` (+ ``_err``), ``time_ratio_vs_direct``, ``bias_ok``.
-        Missing values are None; a report without any run gives ``{"error": ...}``.
+        ``"flagged: ..."`` or ``"unknown"``), ``verdict`` (the report's own, or None), ``notes`` and
+        per method ``methods[name]`` with ``equal_spp_mse``, ``equal_time_efficiency``,
+        ``mse_ratio_vs_best_mitsuba`` (+ ``_err``), ``efficiency_ratio_vs_best_mitsuba`` (+ ``_err``),
+        ``time_ratio_vs_direct``, ``bias_ok``, ``tail_ok``. Missing values are None; a report without
+        any run gives ``{"error": ...}``.
     """
     scenes = report.get("scenes") if isinstance(report, dict) else None
-    runs = scenes[0].get("runs") if isinstance(scenes, list) and scenes and isinstance(scenes[0], dict) else None
-    methods = runs[0].get("methods") if isinstance(runs, list) and runs and isinstance(runs[0], dict) else None
+    scene = scenes[0] if isinstance(scenes, list) and scenes and isinstance(scenes[0], dict) else {}
+    runs = scene.get("runs")
+    run = runs[0] if isinstance(runs, list) and runs and isinstance(runs[0], dict) else {}
+    methods = run.get("methods")
     if not isinstance(methods, dict) or not methods:
         return {"error": "the cell's report has no rendered method"}
 
     spp = {n: e.get("equal_spp") if isinstance(e.get("equal_spp"), dict) else {} for n, e in methods.items()}
     eqt = {n: e.get("equal_time") if isinstance(e.get("equal_time"), dict) else {} for n, e in methods.items()}
     eff = {n: _number(eqt[n], "efficiency") for n in methods}
-    mse = {n: _number(spp[n], "mse") for n in methods}
+    mse = {n: _number(_error(spp[n]), "mse") for n in methods}
     mitsuba = [n for n in MITSUBA_METHODS if n in methods]
     best_eff = max((n for n in mitsuba if eff[n] is not None), key=lambda n: eff[n], default=None)
     best_mse = min((n for n in mitsuba if mse[n] is not None), key=lambda n: mse[n], default=None)
@@ -107,27 +136,34 @@ def summarise_report(report: dict) -> dict:
 
     summary = {}
     for name in methods:
-        eff_ratio, eff_err = _ratio(eff[name], mse_rel_stderr(eqt[name]),
-                                    eff.get(best_eff), mse_rel_stderr(eqt.get(best_eff, {})),
-                                    same=name == best_eff)
-        mse_ratio, mse_err = _ratio(mse[name], mse_rel_stderr(spp[name]),
-                                    mse.get(best_mse), mse_rel_stderr(spp.get(best_mse, {})),
-                                    same=name == best_mse)
+        eff_ratio = eff[name] / eff[best_eff] if eff[name] is not None and best_eff and eff[best_eff] else None
+        mse_ratio = mse[name] / mse[best_mse] if mse[name] is not None and best_mse and mse[best_mse] else None
+        # Efficiency is inverse in the MSE: its ratio has the MSE ratio's relative error
+        # (wall-time noise left out).
+        eff_err = mse_err = None
+        if eff_ratio is not None:
+            eff_err = 0.0 if name == best_eff else ratio_stderr(
+                eff_ratio, mse_per_pass(eqt[name]), mse_per_pass(eqt[best_eff]))
+        if mse_ratio is not None:
+            mse_err = 0.0 if name == best_mse else ratio_stderr(
+                mse_ratio, mse_per_pass(spp[name]), mse_per_pass(spp[best_mse]))
         time = _number(spp[name], "time_s")
-        biases = [_bias_ok(spp[name]), _bias_ok(eqt[name])]
         summary[name] = {
             "equal_spp_mse": mse[name], "equal_time_efficiency": eff[name],
             "mse_ratio_vs_best_mitsuba": mse_ratio, "mse_ratio_vs_best_mitsuba_err": mse_err,
             "efficiency_ratio_vs_best_mitsuba": eff_ratio, "efficiency_ratio_vs_best_mitsuba_err": eff_err,
             "time_ratio_vs_direct": time / direct_time if time is not None and direct_time else None,
-            "bias_ok": False if False in biases else (True if all(b is True for b in biases) else None),
+            "bias_ok": _all([_flag(spp[name], "bias_ok", "bias"), _flag(eqt[name], "bias_ok", "bias")]),
+            "tail_ok": _all([None if not isinstance(e.get("tail_worse_than_baseline"), bool)
+                             else not e["tail_worse_than_baseline"] for e in (spp[name], eqt[name])]),
         }
     flagged = [n for n, s in summary.items() if s["bias_ok"] is False]
     bias = ("flagged: " + ", ".join(flagged) if flagged
             else "ok" if all(s["bias_ok"] for s in summary.values()) else "unknown")
-    notes = scenes[0].get("notes") if isinstance(scenes[0].get("notes"), list) else []
+    notes = scene.get("notes") if isinstance(scene.get("notes"), list) else []
     return {"winner": winner, "best_mitsuba_efficiency": best_eff, "best_mitsuba_mse": best_mse,
-            "bias": bias, "notes": [str(n) for n in notes], "methods": summary}
+            "bias": bias, "verdict": _verdict(report, scene.get("scene"), run.get("sampler")),
+            "notes": [str(n) for n in notes], "methods": summary}
 
 
 def cell_row(cell, key: str, record: dict | None, report: dict | None, out: str) -> dict:
@@ -153,7 +189,7 @@ CSV_FIELDS = ["scene", "map", "sampler", "status", "method", "winner", "best_mit
               "best_mitsuba_mse", "equal_spp_mse", "mse_ratio_vs_best_mitsuba",
               "mse_ratio_vs_best_mitsuba_err", "equal_time_efficiency",
               "efficiency_ratio_vs_best_mitsuba", "efficiency_ratio_vs_best_mitsuba_err",
-              "time_ratio_vs_direct", "bias_ok", "error", "folder"]
+              "time_ratio_vs_direct", "bias_ok", "tail_ok", "error", "folder"]
 
 
 def write_csv(path: str, rows: list[dict]) -> None:
@@ -228,6 +264,14 @@ def _fmt(value, err=None, digits: int = 2) -> str:
     return text + (f" ± {err:.{digits}f}" if err is not None and err > 0 else "")
 
 
+def _verdict_text(verdict: dict | None) -> str:
+    cell = (verdict or {}).get("equal_time") or {}
+    if cell.get("ratio") is None:
+        return "–"
+    interval = f" [{cell['low']:.2f}, {cell['high']:.2f}]" if cell.get("low") is not None else ""
+    return html.escape(f"{cell['numerator']} / {cell['denominator']}: {cell['ratio']:.2f}{interval}")
+
+
 def write_html(path: str, aggregate: dict) -> None:
     """``index.html``: heat maps, the summary table, failed cells with their errors."""
     e = html.escape
@@ -246,18 +290,19 @@ def write_html(path: str, aggregate: dict) -> None:
              f"<code>{e(', '.join(aggregate['grid']['methods'] or ['compare default']))}</code>.</p>",
              "<p>Ratios are against the best of Mitsuba's strategies in the same cell (of "
              f"{', '.join(MITSUBA_METHODS)}): equal-time efficiency ratio (&gt; 1: better) and "
-             "equal-spp MSE ratio (&lt; 1: better); ± one standard error where the cell's report "
-             "lists per-pass MSEs.</p>"]
+             "equal-spp MSE ratio (&lt; 1: better); ± one standard error from the per-pass MSEs "
+             "(paired passes, wall-time noise not included).</p>"]
     for sampler, png in aggregate["heatmaps"].items():
         parts.append(f"<h2>{e(HEATMAP_METHOD)}, {e(sampler)} sampler</h2><img src='{e(png)}'>")
     head = "".join(f"<th>{e(m)} eff. / best</th><th>{e(m)} MSE / best</th>" for m in shown)
     parts.append("<h2>Cells</h2><table><tr><th>scene</th><th>map</th><th>sampler</th><th>winner</th>"
-                 f"<th>best Mitsuba (eff. / MSE)</th>{head}<th>bias</th><th>report</th></tr>")
+                 f"<th>best Mitsuba (eff. / MSE)</th>{head}<th>report's verdict, equal time "
+                 "(90 % interval)</th><th>bias</th><th>report</th></tr>")
     for r in rows:
         cells = [f"<td class=name>{e(r['scene'])}</td><td class=name>{e(r['map'])}</td>"
                  f"<td class=name>{e(r['sampler'])}</td>"]
         if r["status"] != "ok":
-            cells.append(f"<td class='name bad' colspan={3 + 2 * len(shown)}>{e(r['status'])}: "
+            cells.append(f"<td class='name bad' colspan={4 + 2 * len(shown)}>{e(r['status'])}: "
                          f"{e(r['error'] or '')}</td><td></td>")
         else:
             cells.append(f"<td class=name>{e(r['winner'] or '–')}</td><td class=name>"
@@ -266,6 +311,7 @@ def write_html(path: str, aggregate: dict) -> None:
                 v = r["methods"].get(m, {})
                 cells.append(f"<td>{_fmt(v.get('efficiency_ratio_vs_best_mitsuba'), v.get('efficiency_ratio_vs_best_mitsuba_err'))}</td>"
                              f"<td>{_fmt(v.get('mse_ratio_vs_best_mitsuba'), v.get('mse_ratio_vs_best_mitsuba_err'))}</td>")
+            cells.append(f"<td class=name>{_verdict_text(r.get('verdict'))}</td>")
             cls = "name" if r["bias"] == "ok" else "name bad"
             cells.append(f"<td class='{cls}'>{e(r['bias'])}</td>"
                          f"<td class=name><a href='{e(r['index_html'])}'>report</a></td>")
