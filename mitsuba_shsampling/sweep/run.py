@@ -3,8 +3,8 @@
 Each cell is one Dask task (:func:`cell_task`). Before any task runs, every worker gets
 :class:`MitsubaWorkerSetup`, which sets the Mitsuba variant and a Dr.Jit thread count such
 that, on each host, workers x threads <= the cores available there, with one exception:
-a worker gets at least :data:`MIN_DRJIT_THREADS` threads, so a host with fewer than twice
-as many cores as workers is oversubscribed (and a warning says so). A worker runs one cell
+a worker gets at least :data:`MIN_DRJIT_THREADS` threads, so a host with fewer than that
+many cores per worker is oversubscribed (and a warning says so). A worker runs one cell
 at a time even if it has several Dask threads (cells time their renders; two in one
 process would share its Dr.Jit thread pool).
 
@@ -137,8 +137,10 @@ def run_sweep(grid: Grid, out: str, scheduler: str | None = None, workers: int |
     """
     store = CellStore(out)
     cells = grid.cells()
-    keyed = [(cell, cell_inputs(cell)) for cell in cells]
-    keyed = [(cell, inputs, cell_key(inputs)) for cell, inputs in keyed]
+    keyed = []
+    for cell in cells:
+        inputs = cell_inputs(cell)
+        keyed.append((cell, inputs, cell_key(inputs)))
     todo = [(c, i, k) for c, i, k in keyed if not store.finished(c, k)]
     reused = [c.label for c, _, k in keyed if store.finished(c, k)]
     computed: list[str] = []
@@ -173,7 +175,7 @@ def _compute(client: Client, variant: str, todo: list, store: CellStore, cache_d
     code = code_version()
     futures = {client.submit(cell_task, cell, code, cache_dir, key=f"cell-{key}", pure=False):
                (cell, inputs, key) for cell, inputs, key in todo}
-    computed, failed, finished = [], {}, set()
+    computed, failed, finished, status = [], {}, set(), ""
     with tqdm(total=total, initial=done, desc="sweep", unit="cell", disable=not progress,
               file=sys.stderr) as bar:
         pending = as_completed(futures)
@@ -189,7 +191,10 @@ def _compute(client: Client, variant: str, todo: list, store: CellStore, cache_d
                 else:
                     failed[cell.label] = result.error
                 bar.update(1)
-            bar.set_postfix_str(f"running {len(started - finished)}, failed {len(failed)}")
+            # Redraw only on change: a bar on a non-terminal stderr prints every redraw as a line.
+            if f"running {len(started - finished)}, failed {len(failed)}" != status:
+                status = f"running {len(started - finished)}, failed {len(failed)}"
+                bar.set_postfix_str(status)
             if not batch:
                 time.sleep(0.2)
     client.unsubscribe_topic(TOPIC)
