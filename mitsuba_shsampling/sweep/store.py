@@ -36,13 +36,16 @@ class CellStore:
     def folder(self, cell: Cell, key: str) -> str:
         return os.path.join(self.cells_dir, f"{cell.scene.name}_{cell.map.name}_{cell.sampler}_{key}")
 
-    def record(self, cell: Cell, key: str) -> dict | None:
-        """The stored ``cell.json`` of ``cell`` at ``key``, or None."""
-        path = os.path.join(self.folder(cell, key), "cell.json")
+    def _read(self, cell: Cell, key: str, name: str) -> dict | None:
+        path = os.path.join(self.folder(cell, key), name)
         if not os.path.isfile(path):
             return None
         with open(path) as f:
             return json.load(f)
+
+    def record(self, cell: Cell, key: str) -> dict | None:
+        """The stored ``cell.json`` of ``cell`` at ``key``, or None."""
+        return self._read(cell, key, "cell.json")
 
     def finished(self, cell: Cell, key: str) -> bool:
         record = self.record(cell, key)
@@ -50,11 +53,7 @@ class CellStore:
 
     def report(self, cell: Cell, key: str) -> dict | None:
         """The cell's compare ``report.json``, or None if it has none."""
-        path = os.path.join(self.folder(cell, key), "report.json")
-        if not os.path.isfile(path):
-            return None
-        with open(path) as f:
-            return json.load(f)
+        return self._read(cell, key, "report.json")
 
     def save(self, cell: Cell, key: str, inputs: dict, result: CellResult) -> dict:
         """Store a result (unpacking its archive); returns the ``cell.json`` record written."""
