@@ -18,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="address of a running Dask scheduler, e.g. tcp://host:8786 "
                              "(default: an embedded LocalCluster on this machine)")
     parser.add_argument("--workers", type=int, default=None,
-                        help="LocalCluster worker processes (default: one per core); with "
+                        help="LocalCluster worker processes (default: one per 2 cores, as each needs 2 Dr.Jit threads); with "
                              "--scheduler, the workers to wait for before starting")
     parser.add_argument("--cache-dir", default=None,
                         help="reference cache on the workers (default: compare's, on each worker)")
