@@ -126,14 +126,11 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
         ds.d, ds.emitter = d, mi.EmitterPtr(emitter)
         mitsuba_pdf = emitter.pdf_direction(si, ds, hit)
         mitsuba_pdf = mitsuba_pdf if env.needs_emitter_sampling else mi.Float(0.0)
-        # The product strategy's sampling pdf and the density its MIS weights
-        # use must both be positive: a weight may only refer to a strategy
-        # that can draw the direction, and vice versa.
         if not env.active:
             return mitsuba_pdf
         if product_only_lanes:
             return dr.select(use_product, env.warp_plain.pdf(coeffs, d), 0.0)
-        product_pdf = dr.minimum(env.warp.pdf(coeffs, d), env.pdf(env.mis_density(coeffs), d, use_product))
+        product_pdf = env.pdf(coeffs, d, use_product)
         return dr.select(use_product, product_pdf, mitsuba_pdf)
 
     def integrand_and_pdfs(d):

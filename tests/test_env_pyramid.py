@@ -293,7 +293,6 @@ def test_grid_coords_handle_poles_and_seam():
 
 
 def test_cell_index_inverts_cell_bounds():
-    pyramid = EnvPyramid.from_latlong(random_latlong(8, 16))
     level = 4
     iz, iphi = np.meshgrid(np.arange(16), np.arange(16), indexing="ij")
     z = -1 + (iz.ravel() + 0.5) * 2 / 16

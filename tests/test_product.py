@@ -8,7 +8,6 @@ reuses the same compiled kernels.
 
 from __future__ import annotations
 
-import glob
 import math
 import os
 import warnings
@@ -22,7 +21,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba import chi2  # noqa: E402
 
-from mitsuba_shsampling.grid import cell_index, grid_coordinates, grid_direction  # noqa: E402
+from mitsuba_shsampling.grid import grid_direction  # noqa: E402
 from mitsuba_shsampling.envmap import EnvPyramid  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import constant_latlong, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
@@ -268,26 +267,6 @@ def test_pdf_is_never_below_the_defensive_share_of_the_environments(sun_pyramid,
     pdf = warp.pdf(coeffs, d).numpy()
     assert np.all(pdf[pdf_env > 0] > 0)
     assert np.all(pdf >= share * pdf_env * (1.0 - 1e-4))
-
-
-def test_mis_density_has_exactly_the_support_of_the_pdf(sun_pyramid):
-    """MIS weights may use the cheap density only if it is positive exactly where the pdf is."""
-    warp = ProductWarp(sun_pyramid, sh_depth=3)
-    coeffs = per_lane_lobes(8, 1 << 15, seed=11)
-    d = mi.warp.square_to_uniform_sphere(uniform_samples(1 << 15, seed=12))
-    pdf = warp.pdf(coeffs, d).numpy()
-    mis = warp.mis_density(coeffs)(d).numpy()
-    assert np.all(np.isfinite(mis))
-    assert np.array_equal(pdf > 0, mis > 0)
-
-
-def test_mis_density_is_the_environment_pdf_where_the_lobe_has_no_mass(sun_pyramid):
-    warp = ProductWarp(sun_pyramid)
-    negative = [0.0] * 9
-    negative[0] = -1.0
-    d = mi.warp.square_to_uniform_sphere(uniform_samples(4096))
-    np.testing.assert_allclose(warp.mis_density(opaque(negative))(d).numpy(),
-                               warp.pdf(opaque(negative), d).numpy(), rtol=1e-4)
 
 
 def test_defensive_share_must_be_in_the_unit_interval(sun_pyramid):

@@ -118,20 +118,11 @@ class ProductEnvironment:
         return dr.if_stmt(args=(coeffs, u), cond=plain, true_fn=plain_sample,
                           false_fn=lambda c, v: self.warp.sample(c, v))
 
-    def mis_density(self, coeffs):
-        """Per-lane stand-in for the product pdf in MIS weights (None where inactive).
-
-        Every MIS weight of the environment's product strategy, for product and
-        BSDF samples alike, uses it, so the weights sum to 1 while the product
-        sample still divides by its exact pdf (see
-        :class:`~mitsuba_shsampling.warp.product.ProductMISDensity`)."""
-        return self.warp.mis_density(coeffs) if self.active else None
-
-    def pdf(self, mis_density, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
-        """The product strategy's MIS density of world direction ``d`` (0 where inactive)."""
+    def pdf(self, coeffs, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
+        """Product-sampling pdf of world direction ``d`` (0 where inactive)."""
         if not self.active:
             return mi.Float(0.0)
-        return dr.select(active, mis_density(d), 0.0)
+        return dr.select(active, self.warp.pdf(coeffs, d), 0.0)
 
     def hit_pdf(self, emitter, use_product: mi.Bool, product_pdf, emitter_pdf):
         """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the
@@ -140,7 +131,7 @@ class ProductEnvironment:
             return emitter_pdf
         return dr.select(use_product & self.is_environment(emitter), product_pdf, emitter_pdf)
 
-    def product_nee(self, scene, u, si, bsdf, ctx, coeffs, mis_density, use_product, product_only,
+    def product_nee(self, scene, u, si, bsdf, ctx, coeffs, use_product, product_only,
                     frac_e, frac_b, diffuse=False):
         """One product sample of the environment (BSDF value x radiance / pdf).
 
@@ -155,7 +146,7 @@ class ProductEnvironment:
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
         act &= ~scene.ray_test(si.spawn_ray(d), act)
         Le = self.emitter.eval(environment_ray_target(d), act)
-        weight = dr.select(product_only, frac_e, mis_weight(mis_density(d) * frac_e, bsdf_pdf * frac_b))
+        weight = dr.select(product_only, frac_e, mis_weight(pdf_p * frac_e, bsdf_pdf * frac_b))
         return dr.select(act, bsdf_val * Le * (weight / pdf_p), 0.0)
 
     def emitter_nee(self, scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b,

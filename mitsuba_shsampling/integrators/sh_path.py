@@ -100,9 +100,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             # only sees their ratio).
             smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             coeffs, use_product = env.lobe(si, smooth)
-            mis_density = env.mis_density(coeffs)
             # The BSDF sample always runs (it continues the path): no lane is product-only.
-            L += beta * env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, coeffs, mis_density,
+            L += beta * env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, coeffs,
                                         use_product, False, 0.5, 0.5)
             L += beta * env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, 0.5, 0.5)
 
@@ -111,7 +110,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
                                           sampler.next_2d(active_next), active_next)
             d = si.to_world(bs.wo)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            prev_product_pdf = env.pdf(mis_density, d, use_product & ~delta & active_next)
+            prev_product_pdf = env.pdf(coeffs, d, use_product & ~delta & active_next)
             prev_product = use_product
             prev_si = mi.Interaction3f(si)
             prev_bsdf_pdf = bs.pdf

@@ -22,7 +22,6 @@ wasted samples only cost variance.
 
 from __future__ import annotations
 
-import math
 import warnings
 from typing import Callable
 

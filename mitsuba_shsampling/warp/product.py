@@ -39,15 +39,15 @@ the ``sh_depth`` cell), which :meth:`ProductWarp.pdf` uses directly.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import drjit as dr
 import mitsuba as mi
 
-from typing import NamedTuple
-
-from ..grid import Cell, cell_index, grid_coordinates, grid_direction
-from ..sh.basis import as_coefficients, bands_of, sh_eval_sum
-from .hierarchy import Split, check_depth, select_child, descend_pyramid_pdf, descend_pyramid_sample, walk_pdf, walk_sample
+from ..grid import Cell, grid_coordinates, grid_direction
+from ..sh.basis import as_coefficients, bands_of
+from .hierarchy import (Split, check_depth, descend_pyramid_pdf, descend_pyramid_sample, select_child,
+                        walk_pdf, walk_sample)
 from .hsw import SHCellState, SHCellWeights
 
 
@@ -205,9 +205,7 @@ class ProductWarp:
         mixture (1 - e) product + e environment (:class:`ProductWeights`).
 
     ``sample(coeffs, u)`` returns (world direction, solid-angle pdf);
-    ``pdf(coeffs, d)`` evaluates the density for world directions;
-    ``mis_density(coeffs)`` gives a cheap stand-in for ``pdf`` in MIS weights
-    (:class:`ProductMISDensity`). ``coeffs``
+    ``pdf(coeffs, d)`` evaluates the density for world directions. ``coeffs``
     are n^2 per-lane SH coefficients in the grid frame. The pdf is positive
     wherever the pyramid is (every lit direction), for any coefficients; only
     a black map gives pdf 0.
@@ -247,10 +245,6 @@ class ProductWarp:
         d = dr.select(valid, d, mi.warp.square_to_uniform_sphere(u))
         return d, dr.select(valid, prob * p_leaf / leaf.area, 0.0)
 
-    def mis_density(self, coeffs) -> ProductMISDensity:
-        """The per-lane stand-in for :meth:`pdf` in MIS weights (:class:`ProductMISDensity`)."""
-        return ProductMISDensity(self, coeffs)
-
     def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
         z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
@@ -258,61 +252,3 @@ class ProductWarp:
         cell, _, prob, _ = walk_pdf(provider, provider.sh_depth, z, phi)
         leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.depth, z, phi)
         return prob * p_leaf / leaf.area
-
-
-class ProductMISDensity:
-    """A cheap, smooth stand-in p~ for :meth:`ProductWarp.pdf` in MIS weights.
-
-    MIS stays unbiased with any weights that sum to 1 over the strategies at
-    every direction (Veach 1997, sec. 9.2): the power heuristic may therefore
-    use p~ in place of the exact product pdf, provided *every* strategy's
-    weight uses the same p~ and p~ > 0 exactly where the product pdf is. The
-    estimate f / p x w(p~, p_bsdf) still divides by the exact pdf of the
-    sample; only the weights are approximate. This replaces a second tree walk
-    per BSDF sample by one SH evaluation and one gather:
-
-        p~(d) = (1 - e) max(f_SH(d), 0) l(d) / Z  +  e l(d) / E,
-
-    with l(d) the environment's luminance density on the leaf holding d, E its
-    integral, and Z = sum over the root's four cells of max(I_cell, 0) E_cell /
-    A_cell, the walk's own first estimate of the integral of lobe x environment
-    (the same operations as the sampling walk's root split, which the JIT
-    shares). Both terms vanish exactly where l does, as the pdf does. Lanes
-    without product mass (e = 1 in the walk) get the environment pdf l / E,
-    which is then exact.
-
-    Measured on the default scene (512 px, 4 spp, 16 passes, same seeds):
-    per-pixel variance 0.148x ``direct``'s with p~ against 0.149x with the
-    exact pdf, at 5,952 instead of 7,108 kernel operations per pass. Z from the
-    environment's SH projection (exact for the band-limited lobe) scored
-    0.159x: a larger p~ where the lobe meets the light serves the weights better.
-    """
-
-    def __init__(self, warp: "ProductWarp", coeffs: list):
-        self.warp = warp
-        self.coeffs = as_coefficients(coeffs)
-        pyramid = warp.pyramid
-        root = Cell(0, mi.UInt32(0), mi.UInt32(0))
-        lobe = SHCellWeights(self.coeffs)
-        integrals = lobe.children(lobe.root(), root).weights
-        env = pyramid.children(0, root.iz, root.iphi)
-        product = [dr.select(w > 0, w, 0.0) * e for w, e in zip(integrals, env)]
-        # Each root cell covers pi sr: the sum of (I / pi)(E / pi) pi.
-        z_total = ((product[0] + product[1]) + (product[2] + product[3])) / math.pi
-        ok = dr.isfinite(z_total) & (z_total > 0)
-        share = dr.select(ok, warp.defensive_share, 1.0)
-        inv_env_total = 1.0 / pyramid.total if pyramid.total > 0 else 0.0
-        self.lobe_scale = dr.select(ok, (1.0 - share) / dr.select(ok, z_total, 1.0), 0.0)
-        self.env_scale = share * inv_env_total
-
-    def __call__(self, d: mi.Vector3f) -> mi.Float:
-        """p~ of world direction ``d`` (per steradian)."""
-        pyramid = self.warp.pyramid
-        g = pyramid.grid_from_world(d)
-        z, phi = grid_coordinates(g)
-        depth = self.warp.depth
-        iz, iphi = cell_index(depth, z, phi)
-        density = pyramid.cell_integral(depth, iz, iphi) * ((1 << depth) ** 2 / (4.0 * math.pi))
-        lobe = sh_eval_sum(self.coeffs, g)
-        lobe = dr.select(dr.isfinite(lobe) & (lobe > 0), lobe, 0.0)
-        return density * dr.fma(self.lobe_scale, lobe, self.env_scale)
