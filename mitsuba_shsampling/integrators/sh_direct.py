@@ -81,9 +81,10 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # Lanes where the product alone follows the integrand give it every
         # sample (drawn from the uncompensated map); the others combine one
         # strategy per sample type under MIS.
-        product_only = (env.product_carries_all(si, bsdf, use_product)
-                        if self.allocation and n_b > 0 else mi.Bool(False))
-        diffuse = env.is_diffuse(si, product_only)
+        product_only = diffuse = False
+        if self.allocation and n_b > 0:
+            product_only = env.product_carries_all(si, bsdf, use_product)
+            diffuse = env.is_diffuse(si, product_only)
 
         # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
         for _ in range(n_e):
@@ -96,6 +97,10 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # ------------- BSDF sampling (a further product sample in product-only lanes) -------------
         for _ in range(n_b):
             sample_1, sample_2 = sampler.next_1d(active), sampler.next_2d(active)
+            if product_only is False:  # no allocation: not even a branch is traced
+                L += self.bsdf_sample(scene, si, bsdf, ctx, sample_1, sample_2, active, smooth, env,
+                                      use_product, coeffs, frac_e, frac_b) / n_b
+                continue
             L += dr.if_stmt(
                 args=(sample_1, sample_2), cond=product_only,
                 # A product sample whose share of the lane's samples is frac_b.
