@@ -222,3 +222,26 @@ def test_rebuilding_the_envmap_keeps_every_other_emitter_shape_and_the_image():
     assert np.allclose(own, again, rtol=1e-4, atol=1e-6)
     compensated = scene_setup.with_environment(scene, mis_compensation=True)
     assert not np.allclose(own, np.array(mi.render(compensated, integrator=integrator, spp=8, seed=5)))
+
+
+def test_an_interrupted_reference_write_leaves_no_cache_entry_to_be_reused(tmp_path, monkeypatch):
+    """The cache entry appears by rename, so a crash mid-write (or a reader on another
+    worker) never sees half a reference."""
+    from mitsuba_shsampling.report import rendering
+
+    settings = {"res": 8, "sampler": "independent", "max_depth": 2, "envmap": None}
+    scene_path = scenes.builtin_scenes()["sphere_ggx010"]
+
+    def broken_savez(file, **arrays):
+        file.write(b"half a reference")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(rendering.np, "savez", broken_savez)
+    with pytest.raises(OSError, match="disk full"):
+        rendering.render_reference(scene_path, settings, "direct", 8, str(tmp_path))
+    assert not any(name.endswith(".npz") or name.endswith(".partial") for name in os.listdir(tmp_path))
+    monkeypatch.undo()
+    first = rendering.render_reference(scene_path, settings, "direct", 8, str(tmp_path))
+    again = rendering.render_reference(scene_path, settings, "direct", 8, str(tmp_path))
+    assert not first.cached and again.cached
+    np.testing.assert_array_equal(first.chunks, again.chunks)

@@ -243,8 +243,18 @@ def render_reference(scene_path: str, settings: dict, family: str, ref_spp: int,
             progress.update(1)
     elapsed = time.perf_counter() - start
     reference = Reference(np.stack(chunks), chunk_spp * REFERENCE_CHUNKS, path, False, elapsed)
-    np.savez(path, chunks=reference.chunks, spp=reference.spp)
     write_exr(path[:-4] + ".exr", reference.image)
+    # The .npz is the cache entry: write it under a temporary name and rename it
+    # (atomic on one file system), so that another process (a sweep's other
+    # worker) never reads a half-written reference.
+    partial = f"{path}.{os.getpid()}.partial"
+    try:
+        with open(partial, "wb") as f:
+            np.savez(f, chunks=reference.chunks, spp=reference.spp)
+        os.replace(partial, path)
+    finally:
+        if os.path.exists(partial):
+            os.remove(partial)
     return reference
 
 
