@@ -98,7 +98,8 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
     # Every scene BSDF goes through the same classification as in the integrators.
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        env = ProductEnvironment(scene, max_bands=8, sh_depth=3, mis_compensation=product_only_lanes)
+        env = ProductEnvironment(scene, max_bands=8, sh_depth=3, mis_compensation=product_only_lanes,
+                                 plain_product=product_only_lanes)
     emitter = scene.environment()
     rng = np.random.default_rng(seed)
     # Rays towards the sphere from random directions: shading points all over it,
@@ -180,7 +181,7 @@ def test_rough_lobes_give_every_sample_to_the_product_and_sharp_ones_do_not():
     def product_only_fraction(bsdf):
         scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(),
                               "ball": {"type": "sphere", "bsdf": bsdf}})
-        env = ProductEnvironment(scene, max_bands=8, sh_depth=3)
+        env = ProductEnvironment(scene, max_bands=8, sh_depth=3, plain_product=True)
         ray = mi.Ray3f(mi.Point3f(0, 0, 4), mi.Vector3f(0, 0, -1))
         si = scene.ray_intersect(ray)
         bsdf_ptr = si.bsdf(ray)
@@ -190,6 +191,16 @@ def test_rough_lobes_give_every_sample_to_the_product_and_sharp_ones_do_not():
     assert not product_only_fraction(BSDFS["ggx_0.05"])
     assert not product_only_fraction({"type": "blendbsdf", "weight": 0.5, "bsdf_0": {"type": "diffuse"},
                                       "bsdf_1": {"type": "conductor"}})  # a Dirac part needs BSDF samples
+
+
+def test_no_lane_goes_product_only_unless_the_uncompensated_product_was_built():
+    scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(),
+                          "ball": {"type": "sphere", "bsdf": BSDFS["diffuse"]}})
+    env = ProductEnvironment(scene, max_bands=8, sh_depth=3, mis_compensation=True)
+    assert env.warp_plain is None
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(0, 0, 4), mi.Vector3f(0, 0, -1)))
+    _, use_product = env.lobe(si, si.is_valid())
+    assert env.product_carries_all(si, si.bsdf(), use_product) is False
 
 
 def test_frame_perturbing_wrappers_fall_back_to_mitsubas_environment_sampling_with_a_warning():

@@ -30,7 +30,8 @@ class ProductEnvironment:
     """
 
     def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None,
-                 mis_compensation: bool = True, defensive_share: float = DEFAULT_DEFENSIVE_SHARE):
+                 mis_compensation: bool = True, defensive_share: float = DEFAULT_DEFENSIVE_SHARE,
+                 plain_product: bool = False):
         self.scene = scene
         self.emitter = scene.environment()
         self.pyramid = self.lobes = self.warp = None
@@ -57,11 +58,12 @@ class ProductEnvironment:
         #: The product with the map itself (not compensated): the strategy of
         #: lanes where it carries every sample, so that nothing is left to a
         #: BSDF sample that does not run there. The same warp when the scene's
-        #: pyramid is not compensated.
+        #: pyramid is not compensated; built only on request (``plain_product``,
+        #: a second pyramid) otherwise, and None without it.
         self.warp_plain = self.warp
         if self.pyramid.mis_compensation:
-            self.warp_plain = ProductWarp(EnvPyramid(self.emitter), sh_depth=sh_depth,
-                                          defensive_share=defensive_share)
+            self.warp_plain = (ProductWarp(EnvPyramid(self.emitter), sh_depth=sh_depth,
+                                           defensive_share=defensive_share) if plain_product else None)
         self.active = True
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it:
@@ -83,9 +85,10 @@ class ProductEnvironment:
         """Per lane: the product alone follows the integrand closely (its lobe
         needs no widening, :meth:`SceneLobes.represents_exactly`) and the BSDF
         has no Dirac part, so every sample of the lane goes to the product,
-        drawn from the map itself (coverage without a BSDF sample)."""
-        if not self.active:
-            return mi.Bool(False)
+        drawn from the map itself (coverage without a BSDF sample). False
+        (no lane) when the uncompensated product was not built."""
+        if not self.active or self.warp_plain is None:
+            return False
         no_delta = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
         return use_product & no_delta & self.lobes.represents_exactly(si, use_product)
 
@@ -198,16 +201,16 @@ class SceneCache:
     """
 
     def __init__(self, max_bands: int, sh_depth: int | None, mis_compensation: bool,
-                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE):
+                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE, plain_product: bool = False):
         self.max_bands, self.sh_depth, self.mis_compensation = max_bands, sh_depth, mis_compensation
-        self.defensive_share = defensive_share
+        self.defensive_share, self.plain_product = defensive_share, plain_product
         self._scene, self._env = None, None
         self._key, self._held = None, []
 
     def get(self, scene: mi.Scene) -> ProductEnvironment:
         if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
             self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation,
-                                           self.defensive_share)
+                                           self.defensive_share, self.plain_product)
             self._scene = scene
             # Read after the build, which may have sanitised the envmap's data.
             inputs = self._inputs(scene)

@@ -52,8 +52,11 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         self.bsdf_samples = self.options.bsdf_samples
         self.hide_emitters = self.options.hide_emitters
         self.allocation = self.options.product_allocation
+        # Lanes that give every sample to the product need the uncompensated
+        # product: built only when allocation can happen.
         self.scenes = SceneCache(self.options.max_bands, self.options.warp_sh_depth,
-                                 self.options.mis_compensation, self.options.defensive_share)
+                                 self.options.mis_compensation, self.options.defensive_share,
+                                 plain_product=self.allocation and self.bsdf_samples > 0)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass
@@ -81,10 +84,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # Lanes where the product alone follows the integrand give it every
         # sample (drawn from the uncompensated map); the others combine one
         # strategy per sample type under MIS.
-        product_only = diffuse = False
-        if self.allocation and n_b > 0:
-            product_only = env.product_carries_all(si, bsdf, use_product)
-            diffuse = env.is_diffuse(si, product_only)
+        product_only = env.product_carries_all(si, bsdf, use_product) if self.allocation and n_b > 0 else False
+        diffuse = env.is_diffuse(si, product_only) if product_only is not False else False
 
         # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
         for _ in range(n_e):
