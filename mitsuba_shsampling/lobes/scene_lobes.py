@@ -155,18 +155,18 @@ class SceneLobes:
                 continue
             support = lobe_support(bsdf)
             params = self._fit_bsdf(bsdf, uvs) if support == "product" else None
-            if support == "product" and not self._fit_is_usable(params):
-                support, why = "unsupported", "its fitted lobe has no energy at some view elevation"
-            elif support == "unsupported":
+            why = None
+            if support == "unsupported":
                 why = ("it perturbs the shading frame" if bsdf.class_name() in FRAME_WRAPPERS
                        else "it is anisotropic or transmissive")
-            if support == "unsupported":
-                self.has_unsupported_lobes = True
+            elif support == "product" and not self._fit_is_usable(params):
+                support = "unsupported"
                 # An emitter's own shape gets a black BSDF by default: nothing
                 # to warn about (its lanes still get Mitsuba's sampling).
-                if shape.is_emitter() and why.startswith("its fitted lobe"):
-                    row_of_id[key] = 0
-                    continue
+                why = None if shape.is_emitter() else "its fitted lobe has no energy at some view elevation"
+            if support == "unsupported":
+                self.has_unsupported_lobes = True
+            if why is not None:
                 warnings.warn(
                     f"SceneLobes: BSDF '{bsdf.id()}' ({bsdf.class_name()}, flags "
                     f"{int(bsdf.flags()):#x}): {why}; its surfaces use Mitsuba's own "
