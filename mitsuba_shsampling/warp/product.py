@@ -1,9 +1,12 @@
-"""Product sampling: max(SH lobe, 0) x environment luminance.
+"""Product sampling: max(SH lobe, 0) x environment luminance, defensively mixed.
 
-:class:`ProductWarp` draws world directions with density close to
-max(f_SH(omega), 0) * L(omega) / integral, where f_SH is a per-lane SH
-expansion in the environment's *grid frame* (docs/ARCHITECTURE.md) and L the
-luminance held by an :class:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid`.
+:class:`ProductWarp` draws world directions from the mixture
+(1 - e) p_product + e p_env (:class:`ProductWeights`), where p_product is close
+to max(f_SH(omega), 0) * L(omega) / integral, f_SH a per-lane SH expansion in
+the environment's *grid frame* (docs/ARCHITECTURE.md), L the luminance held by
+an :class:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid` and p_env that
+pyramid's own distribution. The mixture keeps the pdf positive wherever the
+map is lit.
 
 Node weights (the four children of the current cell):
 
@@ -33,7 +36,8 @@ its default depth cap).
 Whatever the weights, the pdf is the product of the branch probabilities
 (see :mod:`.hierarchy`), so sampling is unbiased under MIS. Below
 ``sh_depth`` those probabilities telescope to (leaf integral) / (integral of
-the ``sh_depth`` cell), which :meth:`ProductWarp.pdf` uses directly.
+the ``sh_depth`` cell), which :func:`.hierarchy.descend_pyramid_pdf`
+evaluates with two gathers.
 """
 
 from __future__ import annotations
