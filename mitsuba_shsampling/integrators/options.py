@@ -1,14 +1,17 @@
-"""Plugin parameters of ``sh_direct`` and ``sh_path``: defaults, limits, validation, documentation.
+"""Plugin parameters of ``sh_direct``, ``sh_path`` and ``oracle_direct``: defaults, limits,
+validation, documentation.
 
 One frozen dataclass per plugin (:class:`DirectOptions`, :class:`PathOptions`,
-both extending :class:`ProductOptions`, the options of the product strategy).
+both extending :class:`ProductOptions`, the options of the product strategy;
+:class:`OracleOptions`), all extending :class:`PluginOptions`.
 Each field carries its documentation; the plugins' RST parameter tables are
 generated from it (:func:`document_parameters`), so code, checks and docs
 cannot disagree. Limits come from the modules that impose them: the SH basis
 (:data:`~mitsuba_shsampling.sh.basis.MAX_ORDER`), the lobe proxies
 (:data:`~mitsuba_shsampling.lobes.scene_lobes.DIFFUSE_BANDS`), the warp
-hierarchy (:data:`~mitsuba_shsampling.warp.hierarchy.MAX_DEPTH`) and the
-product warp (:func:`~mitsuba_shsampling.warp.product.check_defensive_share`).
+hierarchy (:data:`~mitsuba_shsampling.warp.hierarchy.MAX_DEPTH`), the
+product warp (:func:`~mitsuba_shsampling.warp.product.check_defensive_share`) and the
+oracle (:func:`~mitsuba_shsampling.warp.oracle.check_resolution`).
 
 Conventions follow Mitsuba's own integrators: integer and boolean parameters
 must have exactly that type (an ``<integer>`` in XML, a Python ``int`` in a
@@ -31,6 +34,8 @@ from typing import ClassVar
 from ..lobes.scene_lobes import DIFFUSE_BANDS
 from ..sh.basis import MAX_ORDER
 from ..warp.hierarchy import MAX_DEPTH
+from ..warp.oracle import (DEFAULT_RESOLUTION as DEFAULT_ORACLE_RESOLUTION,
+                           MAX_RESOLUTION as MAX_ORACLE_RESOLUTION, check_resolution)
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share
 
 #: Band counts the lobe proxies support: the diffuse part needs 3 bands, the SH
@@ -61,11 +66,53 @@ _TYPE_NAMES = {bool: "boolean", int: "integer", float: "float", str: "string"}
 
 
 @dataclasses.dataclass(frozen=True)
-class ProductOptions:
-    """Options of the SH product strategy, common to both plugins."""
+class PluginOptions:
+    """What every plugin's options share: exact types, range checks, one-line errors,
+    reading from ``mi.Properties``. Subclasses add the fields and ``_check_ranges``."""
 
     #: Plugin name used in messages (set by the subclasses).
     PLUGIN: ClassVar[str] = "sh_*"
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            # Exact types (that of the default): bool is a subclass of int, and True
+            # for an integer is a mistake.
+            expected = type(field.default)
+            if expected is float and type(value) is int:
+                object.__setattr__(self, field.name, float(value))
+            elif type(value) is not expected:
+                self._fail(field.name, f"must be {_ARTICLES[expected]}", value)
+        self._check_ranges()
+
+    def _check_ranges(self) -> None:
+        pass
+
+    def _fail(self, name: str, requirement: str, value) -> None:
+        kind = _TYPE_NAMES.get(type(value), type(value).__name__)
+        raise OptionError(f"{self.PLUGIN}: parameter '{name}' {requirement}, got {kind} {value!r}")
+
+    def _check_sample_counts(self) -> None:
+        """``emitter_samples`` and ``bsdf_samples`` (of the plugins that have them): >= 0, not both 0."""
+        for name in ("emitter_samples", "bsdf_samples"):
+            if getattr(self, name) < 0:
+                self._fail(name, "must be >= 0", getattr(self, name))
+        if self.emitter_samples + self.bsdf_samples == 0:
+            raise OptionError(f"{self.PLUGIN}: parameters 'emitter_samples' and 'bsdf_samples' "
+                              "must be >= 0 and not both 0, got 0 and 0")
+
+    @classmethod
+    def from_properties(cls, props):
+        """Options from a plugin's ``mi.Properties``: the parameters it sets, defaults
+        for the others. Reading a property marks it as used, so Mitsuba still reports
+        misspelled names."""
+        names = [f.name for f in dataclasses.fields(cls)]
+        return cls(**{name: props.get(name) for name in names if name in props})
+
+
+@dataclasses.dataclass(frozen=True)
+class ProductOptions(PluginOptions):
+    """Options of the SH product strategy, common to both plugins."""
 
     hide_emitters: bool = dataclasses.field(default=False, metadata=_doc(
         "Hide directly visible emitters."))
@@ -89,18 +136,6 @@ class ProductOptions:
         "is lit, so a clamped or inexact lobe never leaves lit directions to BSDF sampling alone "
         "(whose rare hits on a bright light are fireflies). In (0, 1]."))
 
-    def __post_init__(self) -> None:
-        for field in dataclasses.fields(self):
-            value = getattr(self, field.name)
-            # Exact types (that of the default): bool is a subclass of int, and True
-            # for an integer is a mistake.
-            expected = type(field.default)
-            if expected is float and type(value) is int:
-                object.__setattr__(self, field.name, float(value))
-            elif type(value) is not expected:
-                self._fail(field.name, f"must be {_ARTICLES[expected]}", value)
-        self._check_ranges()
-
     def _check_ranges(self) -> None:
         if not MIN_BANDS <= self.max_bands <= MAX_BANDS:
             self._fail("max_bands", f"must be in [{MIN_BANDS}, {MAX_BANDS}]", self.max_bands)
@@ -111,23 +146,11 @@ class ProductOptions:
         except ValueError:
             self._fail("defensive_share", "must be in (0, 1]", self.defensive_share)
 
-    def _fail(self, name: str, requirement: str, value) -> None:
-        kind = _TYPE_NAMES.get(type(value), type(value).__name__)
-        raise OptionError(f"{self.PLUGIN}: parameter '{name}' {requirement}, got {kind} {value!r}")
-
     @property
     def warp_sh_depth(self) -> int | None:
         """``sh_depth`` as :class:`~mitsuba_shsampling.warp.product.ProductWarp` takes it
         (None: automatic)."""
         return None if self.sh_depth == -1 else self.sh_depth
-
-    @classmethod
-    def from_properties(cls, props):
-        """Options from a plugin's ``mi.Properties``: the parameters it sets, defaults
-        for the others. Reading a property marks it as used, so Mitsuba still reports
-        misspelled names."""
-        names = [f.name for f in dataclasses.fields(cls)]
-        return cls(**{name: props.get(name) for name in names if name in props})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,12 +178,7 @@ class DirectOptions(ProductOptions):
 
     def _check_ranges(self) -> None:
         super()._check_ranges()
-        for name in ("emitter_samples", "bsdf_samples"):
-            if getattr(self, name) < 0:
-                self._fail(name, "must be >= 0", getattr(self, name))
-        if self.emitter_samples + self.bsdf_samples == 0:
-            raise OptionError(f"{self.PLUGIN}: parameters 'emitter_samples' and 'bsdf_samples' "
-                              "must be >= 0 and not both 0, got 0 and 0")
+        self._check_sample_counts()
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -192,7 +210,44 @@ class PathOptions(ProductOptions):
             self._fail("rr_depth", "must be > 0", self.rr_depth)
 
 
-def parameter_table(options_cls: type[ProductOptions], indent: str = "") -> str:
+@dataclasses.dataclass(frozen=True)
+class OracleOptions(PluginOptions):
+    """Parameters of ``oracle_direct``."""
+
+    PLUGIN: ClassVar[str] = "oracle_direct"
+
+    emitter_samples: int = dataclasses.field(default=1, metadata=_doc(
+        "Oracle samples of the environment per shading point, drawn from the exact BSDF x "
+        "environment product tabulated at the shading point; also the number of Mitsuba "
+        "emitter samples for any other emitters."))
+    bsdf_samples: int = dataclasses.field(default=1, metadata=_doc(
+        "BSDF samples per shading point; with 0 every environment sample is an oracle sample "
+        "(weight 1)."))
+    resolution: int = dataclasses.field(default=DEFAULT_ORACLE_RESOLUTION, metadata=_doc(
+        f"Cells per side N of the table (a power of two in [2, {MAX_ORACLE_RESOLUTION}], capped at "
+        "the environment pyramid's finest level): the BSDF is evaluated at the centres of the "
+        "N x N equal-area cells, N^2 evaluations per shading point and about N^2 / 2 more per "
+        "oracle sample."))
+    defensive_share: float = dataclasses.field(default=DEFAULT_DEFENSIVE_SHARE, metadata=_doc(
+        "Share e of the environment's own distribution in the oracle, which samples "
+        "(1 - e) tabulated product + e environment, so that every lit direction has a positive pdf "
+        "however coarse the table. In (0, 1]."))
+    hide_emitters: bool = dataclasses.field(default=False, metadata=_doc(
+        "Hide directly visible emitters."))
+
+    def _check_ranges(self) -> None:
+        self._check_sample_counts()
+        try:
+            check_resolution(self.resolution)
+        except ValueError:
+            self._fail("resolution", f"must be a power of two in [2, {MAX_ORACLE_RESOLUTION}]", self.resolution)
+        try:
+            check_defensive_share(self.defensive_share)
+        except ValueError:
+            self._fail("defensive_share", "must be in (0, 1]", self.defensive_share)
+
+
+def parameter_table(options_cls: type[PluginOptions], indent: str = "") -> str:
     """The RST ``pluginparameters`` rows of a plugin: name, type, documentation, default."""
     rows = []
     for field in sorted(dataclasses.fields(options_cls), key=_documentation_order(options_cls)):
@@ -212,7 +267,7 @@ def _documentation_order(options_cls):
     return lambda field: order.index(field.name)
 
 
-def document_parameters(options_cls: type[ProductOptions]):
+def document_parameters(options_cls: type[PluginOptions]):
     """Class decorator: put the parameter rows of ``options_cls`` right after the
     ``.. pluginparameters::`` line of the class docstring."""
     def decorate(cls):
