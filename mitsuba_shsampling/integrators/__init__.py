@@ -2,10 +2,11 @@
 
 Mitsuba registrations are per variant. Importing :mod:`mitsuba_shsampling`
 calls :func:`register` for the active variant and installs a Mitsuba variant
-callback that calls it again after every ``mi.set_variant``, so ``sh_direct``
-and ``sh_path`` are always known to ``mi.load_dict`` and the XML parser.
+callback that calls it again after every ``mi.set_variant``, so ``sh_direct``,
+``sh_path`` and ``oracle_direct`` are always known to ``mi.load_dict`` and the
+XML parser.
 
-Under a variant the plugins cannot run on (scalar, spectral, polarized), both
+Under a variant the plugins cannot run on (scalar, spectral, polarized), all
 names are registered to a stub that raises
 :class:`~mitsuba_shsampling.VariantError` with the reason when a scene or
 dict instantiates it, instead of Mitsuba's generic "plugin not found".
@@ -19,6 +20,9 @@ import mitsuba as mi
 
 from .._backend import VariantError, unsupported_variant_reason
 
+#: Every plugin this package registers.
+PLUGIN_NAMES = ("sh_direct", "sh_path", "oracle_direct")
+
 _class_variant: str | None = None
 
 
@@ -30,13 +34,15 @@ def _plugin_classes() -> dict[str, type]:
     after a variant switch (as Mitsuba does for its own Python integrators).
     """
     global _class_variant
-    from . import sh_direct, sh_path
+    from . import oracle_direct, sh_direct, sh_path
 
     if _class_variant is not None and _class_variant != mi.variant():
         sh_direct = importlib.reload(sh_direct)
         sh_path = importlib.reload(sh_path)
+        oracle_direct = importlib.reload(oracle_direct)
     _class_variant = mi.variant()
-    return {"sh_direct": sh_direct.SHDirectIntegrator, "sh_path": sh_path.SHPathIntegrator}
+    return {"sh_direct": sh_direct.SHDirectIntegrator, "sh_path": sh_path.SHPathIntegrator,
+            "oracle_direct": oracle_direct.OracleDirectIntegrator}
 
 
 def _refusal(reason: str):
@@ -46,7 +52,7 @@ def _refusal(reason: str):
 
 
 def register() -> None:
-    """Register ``sh_direct`` and ``sh_path`` for the current variant (as stubs
+    """Register ``sh_direct``, ``sh_path`` and ``oracle_direct`` for the current variant (as stubs
     that raise :class:`~mitsuba_shsampling.VariantError` under unsupported ones).
 
     :raises VariantError: no variant is set.
@@ -55,7 +61,7 @@ def register() -> None:
     if mi.variant() is None:
         raise VariantError(f"mitsuba_shsampling: {reason}")
     if reason is not None:
-        for name in ("sh_direct", "sh_path"):
+        for name in PLUGIN_NAMES:
             mi.register_integrator(name, _refusal(reason))
         return
     for name, cls in _plugin_classes().items():

@@ -1,0 +1,219 @@
+"""``oracle_direct``: direct illumination with exact, tabulated product sampling (a reference)."""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from ..envmap.pyramid import EnvPyramid
+from ..lobes.fit import luminance
+from ..warp.oracle import OracleWarp
+from .environment import SceneCache, environment_ray_target, mis_weight
+from .options import OracleOptions, document_parameters
+
+
+@document_parameters(OracleOptions)
+class OracleDirectIntegrator(mi.SamplingIntegrator):
+    r"""
+    .. _integrator-oracle_direct:
+
+    Oracle product direct illumination (:monosp:`oracle_direct`)
+    ------------------------------------------------------------
+
+    .. pluginparameters::
+
+    .. The rows are generated from integrators/options.py (OracleOptions).
+
+    A reference, not a renderer: how far an *ideal* product sampler would
+    lower the noise of :monosp:`sh_direct`. At every shading point of a
+    smooth BSDF it tabulates the exact product luminance(BSDF value) x
+    environment over N x N equal-area cells (the BSDF at each cell's centre,
+    times the environment's exact luminance integral over the cell; no
+    visibility) and draws environment samples in proportion to it, mixed
+    with a share of the environment's own distribution and followed down to
+    the environment's finest cells (:class:`~mitsuba_shsampling.warp.oracle.OracleWarp`).
+    That costs N^2 BSDF evaluations per shading point and about N^2 / 2 per
+    oracle sample (1024 and 512 at the default N = 32).
+
+    Oracle and BSDF samples are combined with the power heuristic using
+    sample-count fractions, as :monosp:`direct` and :monosp:`sh_direct` do;
+    with ``bsdf_samples`` = 0 every sample is an oracle sample, weight 1.
+    The environment is sampled as it is, never MIS-compensated: the oracle's
+    defensive share must reach every lit direction by itself, with no
+    partner strategy to cover what compensation drops.
+
+    Other emitters (area, point, ...) use Mitsuba's emitter sampling, the
+    environment's share of it left to the oracle. Delta BSDFs, scenes whose
+    environment is not an ``envmap`` and scenes without one render as
+    :monosp:`direct` does.
+
+    .. tabs::
+        .. code-tab:: xml
+
+            <integrator type="oracle_direct">
+                <integer name="emitter_samples" value="1"/>
+                <integer name="bsdf_samples" value="1"/>
+                <integer name="resolution" value="32"/>
+            </integrator>
+
+        .. code-tab:: python
+
+            'type': 'oracle_direct', 'emitter_samples': 1, 'bsdf_samples': 1, 'resolution': 32
+    """
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        self.options = OracleOptions.from_properties(props)
+        self.emitter_samples = self.options.emitter_samples
+        self.bsdf_samples = self.options.bsdf_samples
+        self.hide_emitters = self.options.hide_emitters
+        self.scenes = OracleCache(self.options.resolution, self.options.defensive_share)
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        self.scenes.get(scene)  # build host-side state before tracing the pass
+        return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        env = self.scenes.get(scene)
+        ray = mi.Ray3f(ray)
+        active = mi.Bool(active)
+        L = mi.Spectrum(0.0)
+
+        # ---------------------- Directly visible emitters ----------------------
+        si = scene.ray_intersect(ray, active)
+        if not self.hide_emitters:
+            L += si.emitter(scene, active).eval(si, active)
+        active &= si.is_valid()
+
+        bsdf = si.bsdf(ray)
+        ctx = mi.BSDFContext()
+        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        n_e, n_b = self.emitter_samples, self.bsdf_samples
+        frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
+
+        # ------------- The oracle's table: the BSDF at every cell centre -------------
+        def lobe(d, act):
+            return luminance(bsdf.eval(ctx, si, si.to_local(d), act))
+
+        # Without oracle samples the table is not needed: their MIS fraction is 0.
+        oracle = smooth if env.warp is not None and n_e > 0 else mi.Bool(False)
+        table = env.warp.tabulate(lobe, oracle) if env.warp is not None and n_e > 0 else None
+
+        # ------ Environment: oracle samples; other emitters: Mitsuba's sampling ------
+        for _ in range(n_e):
+            L += env.oracle_nee(scene, sampler.next_2d(oracle), si, bsdf, ctx, lobe, table, oracle,
+                                frac_e, frac_b) / n_e
+        for _ in range(n_e):
+            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b) / n_e
+
+        # ----------------------------- BSDF sampling -----------------------------
+        for _ in range(n_b):
+            L += self.bsdf_sample(scene, si, bsdf, ctx, sampler.next_1d(active), sampler.next_2d(active),
+                                  active, smooth, env, lobe, table, oracle, frac_e, frac_b) / n_b
+
+        sees_environment = not self.hide_emitters and scene.environment() is not None
+        return L, si.is_valid() | sees_environment, []
+
+    def bsdf_sample(self, scene, si, bsdf, ctx, sample_1, sample_2, active, smooth, env, lobe, table,
+                    oracle, frac_e, frac_b):
+        """One BSDF sample of the emitters it hits, MIS-weighted against the
+        emitter strategy of the lane (the oracle for the environment in oracle
+        lanes, Mitsuba's sampling otherwise)."""
+        bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active)
+        act = active & (bs.pdf > 0)
+        d = si.to_world(bs.wo)
+        si_b = scene.ray_intersect(si.spawn_ray(d), act)
+        emitter = si_b.emitter(scene, act)
+        act &= emitter != None  # noqa: E711 (per-lane pointer test)
+        Le = emitter.eval(si_b, act)
+        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        ds = mi.DirectionSample3f(scene, si_b, si)
+        pdf_em = scene.pdf_emitter_direction(si, ds, act & ~delta)
+        if table is not None:
+            # W is the lane's: the oracle's pdf costs one BSDF evaluation here.
+            by_oracle = oracle & env.is_environment(emitter)
+            pdf_em = dr.select(by_oracle, env.warp.pdf(lobe, table, d, act & by_oracle & ~delta), pdf_em)
+        pdf_em = dr.select(delta | ~smooth, 0.0, pdf_em)
+        weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)
+        return dr.select(act, bsdf_weight * Le * weight, 0.0)
+
+    def to_string(self):
+        return f"OracleDirectIntegrator[{self.options}]"
+
+
+class OracleEnvironment:
+    """Per-scene state of :class:`OracleDirectIntegrator`.
+
+    Attributes: ``emitter`` (the environment or None), ``warp`` (an
+    :class:`~mitsuba_shsampling.warp.oracle.OracleWarp` over the map's own,
+    uncompensated pyramid; None when the scene has no usable ``envmap``, and
+    every lane then uses Mitsuba's emitter sampling), ``reason`` (why not),
+    ``needs_emitter_sampling`` (Mitsuba's emitter sampling has work besides
+    the environment).
+    """
+
+    def __init__(self, scene: mi.Scene, resolution: int, defensive_share: float):
+        self.emitter = scene.environment()
+        self.warp = None
+        others = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
+        self.needs_emitter_sampling = True
+        if self.emitter is None:
+            self.reason = "the scene has no environment emitter"
+        elif self.emitter.class_name() != "EnvironmentMapEmitter":
+            self.reason = f"the environment emitter is '{self.emitter.class_name()}', not an 'envmap'"
+        else:
+            pyramid = EnvPyramid(self.emitter)
+            self.reason = "the environment map is black" if pyramid.is_black else ""
+            if not pyramid.is_black:
+                self.warp = OracleWarp(pyramid, resolution, defensive_share)
+                self.needs_emitter_sampling = bool(others)
+
+    def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
+        """Per-lane test: is ``emitter`` the environment map."""
+        return dr.reinterpret_array(mi.UInt32, emitter) == dr.reinterpret_array(
+            mi.UInt32, mi.EmitterPtr(self.emitter))
+
+    def oracle_nee(self, scene, u, si, bsdf, ctx, lobe, table, oracle, frac_e, frac_b):
+        """One oracle sample of the environment (BSDF value x radiance / pdf),
+        power-heuristic weighted against BSDF sampling with the strategies'
+        sample-count fractions (weight 1 without BSDF samples)."""
+        if self.warp is None:
+            return mi.Spectrum(0.0)
+        d, pdf = self.warp.sample(lobe, table, u, oracle)
+        act = oracle & (pdf > 0)
+        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
+        act &= ~scene.ray_test(si.spawn_ray(d), act)
+        Le = self.emitter.eval(environment_ray_target(d), act)
+        weight = mis_weight(pdf * frac_e, bsdf_pdf * frac_b)
+        return dr.select(act, bsdf_val * Le * (weight / pdf), 0.0)
+
+    def emitter_nee(self, scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b):
+        """One sample of Mitsuba's emitter sampling, without the environment's
+        share in oracle lanes (that belongs to :meth:`oracle_nee`); not traced
+        when no lane can use it."""
+        if not self.needs_emitter_sampling:
+            return mi.Spectrum(0.0)
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
+        act = smooth & (ds.pdf != 0)
+        if self.warp is not None:
+            act &= ~(oracle & self.is_environment(ds.emitter))
+        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
+        weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
+        return dr.select(act, bsdf_val * em_weight * weight, 0.0)
+
+
+class OracleCache(SceneCache):
+    """:class:`~.environment.SceneCache`'s change detection, building :class:`OracleEnvironment`."""
+
+    def __init__(self, resolution: int, defensive_share: float):
+        super().__init__(max_bands=0, sh_depth=None, mis_compensation=False, defensive_share=defensive_share)
+        self.resolution = resolution
+
+    def get(self, scene: mi.Scene) -> OracleEnvironment:
+        if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
+            self._env = OracleEnvironment(scene, self.resolution, self.defensive_share)
+            self._scene = scene
+            inputs = self._inputs(scene)  # after the build, which may have sanitised the envmap
+            self._key = self._identity(inputs)
+            self._held = [type(value)(value) for value in inputs if dr.detail.collect_indices(value)]
+        return self._env
