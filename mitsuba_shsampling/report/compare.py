@@ -128,6 +128,8 @@ class MethodResult:
     equal_spp: PassResult
     equal_time: PassResult | None = None
     convergence: list[dict] = dataclasses.field(default_factory=list)
+    #: A reference row (:attr:`.methods.Method.oracle`), not a contender.
+    oracle: bool = False
 
 
 def measure(passes: PassSet, reference: Reference, files: dict[str, str]) -> PassResult:
@@ -289,7 +291,7 @@ class SceneComparison:
             results[m.name] = MethodResult(
                 label=m.label, family=m.family, rays_per_sample=m.rays_per_sample,
                 integrator=m.integrator, scene_params=m.scene_params, compile_time_s=r.compile_time_s,
-                equal_spp=measure(passes, refs[m.family], files))
+                equal_spp=measure(passes, refs[m.family], files), oracle=m.oracle)
 
         # Equal time: each method gets the spp that costs the baseline's time per pass.
         for m in methods:
@@ -441,7 +443,9 @@ def serialise(value):
 
 
 #: Names of the project's methods (those needing a plugin of this package), for the verdict.
-PROJECT_METHODS = frozenset(m.name for m in METHODS if m.plugin is not None)
+PROJECT_METHODS = frozenset(m.name for m in METHODS if m.plugin is not None and not m.oracle)
+#: Reference rows, which the verdict leaves out.
+ORACLE_METHODS = frozenset(m.name for m in METHODS if m.oracle)
 
 
 def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
@@ -459,7 +463,7 @@ def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
             report["scenes"].append(SceneComparison(path, settings, bar).run())
     report["total_time_s"] = time.time() - started
     report = serialise(report)
-    report["verdict"] = serialise(verdict.verdict(report, PROJECT_METHODS))
+    report["verdict"] = serialise(verdict.verdict(report, PROJECT_METHODS, ORACLE_METHODS))
     with open(os.path.join(settings.out, "report.json"), "w") as f:
         json.dump(report, f, indent=2, allow_nan=False)
     write_csv(os.path.join(settings.out, "metrics.csv"), report)

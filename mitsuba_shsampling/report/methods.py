@@ -6,6 +6,12 @@ costs, so that equal-sample comparisons count rays (an emitter or product sample
 plus a BSDF sample are 2 rays, as ``direct`` 1+1). Methods whose plugin this
 process cannot load (e.g. ``sh_direct`` under an unsupported variant) are left
 out with a note by :func:`available_methods`.
+
+Oracle rows (:attr:`Method.oracle`) are references, not contenders: the exact
+tabulated product (``oracle_direct``) shows how close the SH product gets to
+an ideal product sampler that costs thousands of BSDF evaluations per sample.
+They run only when named (``--methods``), and the verdict and the sweep's
+winner leave them out.
 """
 
 from __future__ import annotations
@@ -38,6 +44,8 @@ class Method:
     :param plugin: integrator plugin type that must be loadable for the method to run.
     :param product_sampling: whether the method samples the environment with the SH product
         (only meaningful on scenes with an envmap).
+    :param oracle: a reference row (an ideal sampler no renderer would pay for): left out of the
+        default method set and never a contender in the verdict or a sweep's winner.
     """
 
     name: str
@@ -48,6 +56,7 @@ class Method:
     scene_params: dict = dataclasses.field(default_factory=dict)
     plugin: str | None = None
     product_sampling: bool = False
+    oracle: bool = False
 
     def load_integrator(self, max_depth: int) -> mi.Integrator:
         """Instantiate the integrator (``max_depth`` applies to the multi-bounce family)."""
@@ -74,6 +83,13 @@ METHODS: tuple[Method, ...] = (
     Method("sh_product_only", "SH product sampling only (2 samples)",
            {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0, "mis_compensation": False},
            plugin="sh_direct", product_sampling=True),
+    # Reference rows: the ideal the SH product is measured against (see module docstring).
+    Method("oracle_direct", "reference row: exact tabulated product (oracle) + BSDF (MIS)",
+           {"type": "oracle_direct", "emitter_samples": 1, "bsdf_samples": 1},
+           plugin="oracle_direct", oracle=True),
+    Method("oracle_only", "reference row: exact tabulated product (oracle) only (2 samples)",
+           {"type": "oracle_direct", "emitter_samples": 2, "bsdf_samples": 0},
+           plugin="oracle_direct", oracle=True),
     Method("path", "path tracer (envmap + BSDF, MIS)", {"type": "path"}, family=MULTI_BOUNCE),
     Method("sh_path", "SH product path tracer", {"type": "sh_path"}, family=MULTI_BOUNCE,
            plugin="sh_path", product_sampling=True),
@@ -112,7 +128,8 @@ def available_methods(names: list[str] | None = None, multi_bounce: bool = False
                       ) -> tuple[list[Method], list[str]]:
     """Methods to run, and notes about the ones left out.
 
-    :param names: requested method names (None: all methods of the chosen families).
+    :param names: requested method names (None: all methods of the chosen families but the
+        oracle rows).
     :param multi_bounce: include the multi-bounce family (``path`` vs ``sh_path``); the
         direct-lighting family is included unless ``names`` excludes it.
     :returns: (runnable methods in report order, one note per skipped method).
@@ -120,7 +137,7 @@ def available_methods(names: list[str] | None = None, multi_bounce: bool = False
     if names is not None:
         chosen = [method_by_name(n) for n in names]
     else:
-        chosen = [m for m in METHODS if m.family == DIRECT or multi_bounce]
+        chosen = [m for m in METHODS if (m.family == DIRECT or multi_bounce) and not m.oracle]
     runnable, notes = [], []
     status_cache: dict[str, str | None] = {}
     for method in chosen:

@@ -12,6 +12,7 @@ best of Mitsuba's own strategies* (every method that needs no plugin: ``direct``
 project method ran, the winner over the runner-up. Its interval is a paired
 bootstrap over passes: pass k of both methods is resampled together (the passes
 are i.i.d. across k; methods share seeds, so pairing also keeps their correlation).
+Reference rows (the oracle) are no contenders: they appear in the caveats only.
 """
 
 from __future__ import annotations
@@ -148,17 +149,20 @@ def _caveats(scene: dict, run: dict, names: list[str], baseline: str) -> list[st
     return notes
 
 
-def verdict(report: dict, project_methods: set[str]) -> list[VerdictRow]:
-    """One row per scene x sampler x method family of ``report`` (the report.json dict)."""
+def verdict(report: dict, project_methods: set[str], reference_methods: set[str] = frozenset()
+            ) -> list[VerdictRow]:
+    """One row per scene x sampler x method family of ``report`` (the report.json dict);
+    ``reference_methods`` (oracle rows) take no part in the contest."""
     rows = []
     for scene in report["scenes"]:
         for run in scene["runs"]:
             results = run["methods"]
             for family in dict.fromkeys(r["family"] for r in results.values()):
                 names = [n for n, r in results.items() if r["family"] == family]
-                project = [n for n in names if n in project_methods]
-                mitsuba = [n for n in names if n not in project_methods]
-                if len(names) < 2:
+                contenders = [n for n in names if n not in reference_methods]
+                project = [n for n in contenders if n in project_methods]
+                mitsuba = [n for n in contenders if n not in project_methods]
+                if len(contenders) < 2:
                     continue
                 baseline = results[names[0]]["equal_time"]["budget_method"]
                 caveats = _caveats(scene, run, names, baseline)

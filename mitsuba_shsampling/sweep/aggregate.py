@@ -3,7 +3,8 @@
 Per cell (read from its compare ``report.json``; every field is optional, so reports
 of older or newer compare versions still summarise):
 
-- the **winner**: the method of highest equal-time efficiency (1 / (MSE x time));
+- the **winner**: the method of highest equal-time efficiency (1 / (MSE x time)), reference
+  rows (``"oracle": true`` in the report, the exact tabulated product) left out;
 - the **best Mitsuba strategy**: of :data:`MITSUBA_METHODS` present, the one of highest
   equal-time efficiency (for efficiency ratios) and the one of lowest equal-spp MSE (for
   MSE ratios), as ``scripts/results_table.py`` chooses them;
@@ -131,7 +132,8 @@ def summarise_report(report: dict) -> dict:
     mitsuba = [n for n in MITSUBA_METHODS if n in methods]
     best_eff = max((n for n in mitsuba if eff[n] is not None), key=lambda n: eff[n], default=None)
     best_mse = min((n for n in mitsuba if mse[n] is not None), key=lambda n: mse[n], default=None)
-    winner = max((n for n in methods if eff[n] is not None), key=lambda n: eff[n], default=None)
+    contenders = [n for n, e in methods.items() if e.get("oracle") is not True]
+    winner = max((n for n in contenders if eff[n] is not None), key=lambda n: eff[n], default=None)
     direct_time = _number(spp.get("direct", {}), "time_s")
 
     summary = {}
