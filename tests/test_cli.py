@@ -167,7 +167,7 @@ def test_plugin_status_accepts_mitsuba_integrators_and_explains_unknown_ones():
 def test_every_method_counts_two_rays_per_sample_and_sh_methods_need_their_plugin():
     for method in METHODS:
         assert method.rays_per_sample == 2
-        assert (method.plugin is not None) == method.product_sampling
+        assert (method.plugin is not None) == (method.product_sampling or method.oracle)
 
 
 def test_admissible_spp_matches_what_each_sampler_renders():
