@@ -33,7 +33,7 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
     with a share of the environment's own distribution and followed down to
     the environment's finest cells (:class:`~mitsuba_shsampling.warp.oracle.OracleWarp`).
     That costs N^2 BSDF evaluations per shading point and about N^2 / 2 per
-    oracle sample (1024 and 512 at the default N = 32).
+    oracle sample (4096 and about 2048 at the default N = 64).
 
     Oracle and BSDF samples are combined with the power heuristic using
     sample-count fractions, as :monosp:`direct` and :monosp:`sh_direct` do;
@@ -53,12 +53,12 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
             <integrator type="oracle_direct">
                 <integer name="emitter_samples" value="1"/>
                 <integer name="bsdf_samples" value="1"/>
-                <integer name="resolution" value="32"/>
+                <integer name="resolution" value="64"/>
             </integrator>
 
         .. code-tab:: python
 
-            'type': 'oracle_direct', 'emitter_samples': 1, 'bsdf_samples': 1, 'resolution': 32
+            'type': 'oracle_direct', 'emitter_samples': 1, 'bsdf_samples': 1, 'resolution': 64
     """
 
     def __init__(self, props: mi.Properties):
