@@ -4,7 +4,7 @@ Implements hierarchical sample warping of SH functions and SH-lobe x
 environment-map product sampling (Jarosz, Carr, Jensen, "Importance Sampling
 Spherical Harmonics", Eurographics 2009) as Dr.Jit kernels.
 
-Importing the package registers the ``sh_direct`` and ``sh_path`` integrator
+Importing the package registers the ``sh_direct``, ``sh_path`` and ``oracle_direct`` integrator
 plugins for the active Mitsuba variant and for every variant set later.
 """
 

@@ -112,7 +112,9 @@ def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str]) -> V
                        ratio=statistic(a) / statistic(b), low=low, high=high)
 
 
-def _caveats(scene: dict, run: dict, names: list[str], baseline: str) -> list[str]:
+def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders: list[str]) -> list[str]:
+    """Notes on the run's methods ``names``; the equal-time resolution only of the ``contenders``
+    (a reference row at 1 spp within the baseline's time is what it costs, not a coarse budget)."""
     results = run["methods"]
     notes = []
     base_time = results[baseline]["equal_spp"]["time_s"]
@@ -120,7 +122,7 @@ def _caveats(scene: dict, run: dict, names: list[str], baseline: str) -> list[st
         notes.append(f"time budget too small to be meaningful: a {baseline} pass takes "
                      f"{1e3 * base_time:.1f} ms (per-launch overhead and timer noise weigh on every "
                      f"time; raise --res or --spp)")
-    spps = {n: results[n]["equal_time"]["spp"] for n in names}
+    spps = {n: results[n]["equal_time"]["spp"] for n in contenders}
     if min(spps.values()) <= MIN_EQUAL_TIME_SPP:
         listing = ", ".join(f"{n} {s}" for n, s in spps.items())
         notes.append(f"equal-time spp too coarse to compare ({listing}): raise --spp")
@@ -165,7 +167,7 @@ def verdict(report: dict, project_methods: set[str], reference_methods: set[str]
                 if len(contenders) < 2:
                     continue
                 baseline = results[names[0]]["equal_time"]["budget_method"]
-                caveats = _caveats(scene, run, names, baseline)
+                caveats = _caveats(scene, run, names, baseline, contenders)
                 ref = scene["references"].get(family)
                 cell_spp = _cell(results, "equal_spp", project, mitsuba)
                 cell_time = _cell(results, "equal_time", project, mitsuba)
