@@ -26,6 +26,7 @@ from mitsuba_shsampling.grid import grid_direction  # noqa: E402
 from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.lobes.fit import luminance  # noqa: E402
 from mitsuba_shsampling.report.methods import METHODS, available_methods, method_by_name  # noqa: E402
+from mitsuba_shsampling.sweep import aggregate  # noqa: E402
 from mitsuba_shsampling.warp.oracle import OracleWarp  # noqa: E402
 
 from test_integrators import MATERIALS, assert_unbiased, make_scene  # noqa: E402
@@ -190,3 +191,14 @@ def test_compare_runs_an_oracle_row_on_request_and_keeps_it_out_of_the_verdict(t
         assert row[kind]["winner"] != "oracle_only"
     # At equal time an oracle renders 1 spp: what it costs, not a budget too coarse to compare.
     assert not any("oracle_only" in c for c in row["caveats"] if "equal-time spp" in c)
+
+
+def test_a_sweep_never_names_an_oracle_row_its_winner():
+    def entry(mse, oracle=False):
+        e = {"error": {"mse": mse, "mse_per_pass": [mse, mse]}, "time_s": 1.0, "efficiency": 1 / mse}
+        return {"equal_spp": e, "equal_time": e, "oracle": oracle}
+    report = {"scenes": [{"notes": [], "runs": [{"methods": {
+        "direct": entry(1.0), "sh_direct": entry(0.5), "oracle_only": entry(0.1, oracle=True)}}]}]}
+    summary = aggregate.summarise_report(report)
+    assert summary["winner"] == "sh_direct"
+    assert summary["methods"]["oracle_only"]["mse_ratio_vs_best_mitsuba"] == pytest.approx(0.1)
