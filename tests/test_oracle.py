@@ -185,6 +185,7 @@ def test_compare_runs_an_oracle_row_on_request_and_keeps_it_out_of_the_verdict(t
     assert list(methods) == ["direct", "sh_direct", "oracle_only"]
     assert methods["oracle_only"]["oracle"] and not methods["sh_direct"]["oracle"]
     assert methods["oracle_only"]["equal_spp"]["error"]["mse"] > 0
+    assert "oracle_only (reference row)" in (tmp_path / "index.html").read_text()
     (row,) = report["verdict"]
     for kind in ("equal_spp", "equal_time"):
         assert {row[kind]["numerator"], row[kind]["denominator"]} == {"sh_direct", "direct"}

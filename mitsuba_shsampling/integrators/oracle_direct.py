@@ -37,7 +37,8 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
 
     Oracle and BSDF samples are combined with the power heuristic using
     sample-count fractions, as :monosp:`direct` and :monosp:`sh_direct` do;
-    with ``bsdf_samples`` = 0 every sample is an oracle sample, weight 1.
+    with ``bsdf_samples`` = 0 every sample is an oracle sample, weight 1
+    (and delta BSDFs reflect nothing, as in :monosp:`direct`).
     The environment is sampled as it is, never MIS-compensated: the oracle's
     defensive share must reach every lit direction by itself, with no
     partner strategy to cover what compensation drops.

@@ -146,12 +146,14 @@ def _metrics_table(run: dict) -> str:
     rows = [f'<tr><th>method</th><th>rays/sample</th><th>compile (s)</th><th>comparison</th>{head}'
             f'<th>tail vs baseline</th></tr>']
     for name, entry in run["methods"].items():
+        # Oracle rows are references (the ideal product sampler), not contenders.
+        shown = f"{_e(name)} (reference row)" if entry.get("oracle") else _e(name)
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
             e = entry[kind]
             cells = "".join(f"<td>{_num(get(e))}</td>" for _, _, get in cols)
             worse = e["tail_worse_than_baseline"]
             tail = f'<td class="name bad">{_e("; ".join(worse))}</td>' if worse else '<td class="name">ok</td>'
-            rows.append(f'<tr><td class="name">{_e(name)}</td><td>{entry["rays_per_sample"]}</td>'
+            rows.append(f'<tr><td class="name">{shown}</td><td>{entry["rays_per_sample"]}</td>'
                         f'<td>{_num(entry["compile_time_s"], 3)}</td><td class="name">{title}</td>'
                         f'{cells}{tail}</tr>')
     return "<table>" + "".join(rows) + "</table>"
