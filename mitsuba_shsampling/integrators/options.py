@@ -44,6 +44,7 @@ MIN_BANDS, MAX_BANDS = DIFFUSE_BANDS, MAX_ORDER + 1
 # 2 levels lost most of the variance reduction. See README "Measured results".
 DEFAULT_MAX_BANDS = 8
 DEFAULT_SH_DEPTH = 3
+DEFAULT_PROXY_DEPTH = 0
 
 
 class OptionError(ValueError):
@@ -77,6 +78,12 @@ class ProductOptions:
         f"Levels of the product hierarchy that use analytic SH cell integrals (1..{MAX_DEPTH}, "
         "or -1: from the band count, 2^k >= 4 n); below them the lobe is taken as constant and "
         "only the environment is refined."))
+    proxy_depth: int = dataclasses.field(default=DEFAULT_PROXY_DEPTH, metadata=_doc(
+        "Levels of the product hierarchy, counted from the root, down to which the children are "
+        "weighted by the lobe proxy in closed form (its fitted exponent, not widened to the band "
+        f"limit, blurred to the cell size) times the environment (0..{MAX_DEPTH}); the levels "
+        "between ``sh_depth`` and this use it, deeper ones follow the environment alone. A value "
+        "not above ``sh_depth`` switches it off."))
     mis_compensation: bool = dataclasses.field(default=True, metadata=_doc(
         "Product-sample against the environment minus its mean radiance (clamped at 0), "
         "leaving the smooth part to BSDF sampling, as Mitsuba's ``envmap`` option of the "
@@ -106,6 +113,8 @@ class ProductOptions:
             self._fail("max_bands", f"must be in [{MIN_BANDS}, {MAX_BANDS}]", self.max_bands)
         if not (self.sh_depth == -1 or 1 <= self.sh_depth <= MAX_DEPTH):
             self._fail("sh_depth", f"must be in [1, {MAX_DEPTH}] or -1 (automatic)", self.sh_depth)
+        if not 0 <= self.proxy_depth <= MAX_DEPTH:
+            self._fail("proxy_depth", f"must be in [0, {MAX_DEPTH}]", self.proxy_depth)
         try:
             check_defensive_share(self.defensive_share)
         except ValueError:
