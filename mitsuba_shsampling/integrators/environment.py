@@ -19,7 +19,7 @@ from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
 from ..lobes.scene_lobes import DIFFUSE_BANDS, registry_id
 from ..warp.proxy_lobe import ProxyLobe
-from ..warp.product import DEFAULT_DEFENSIVE_SHARE, ProductWarp
+from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, ProductWarp
 
 
 class ProductEnvironment:
@@ -33,7 +33,7 @@ class ProductEnvironment:
 
     def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None,
                  mis_compensation: bool = True, defensive_share: float = DEFAULT_DEFENSIVE_SHARE,
-                 plain_product: bool = False, proxy_depth: int | None = None):
+                 plain_product: bool = False, proxy_depth: int | None = DEFAULT_PROXY_DEPTH):
         self.scene = scene
         self.emitter = scene.environment()
         self.pyramid = self.lobes = self.warp = None

@@ -31,20 +31,20 @@ from typing import ClassVar
 from ..lobes.scene_lobes import DIFFUSE_BANDS
 from ..sh.basis import MAX_ORDER
 from ..warp.hierarchy import MAX_DEPTH
-from ..warp.product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share
+from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, check_defensive_share
 
 #: Band counts the lobe proxies support: the diffuse part needs 3 bands, the SH
 #: basis goes to l = MAX_ORDER.
 MIN_BANDS, MAX_BANDS = DIFFUSE_BANDS, MAX_ORDER + 1
 
-# Defaults chosen from end-to-end measurements (96x96, gold GGX sphere on a
-# plane, immenstadter_horn and studio maps, alpha 0.1 and 0.3): 8 bands with
-# analytic SH weights on the top 3 levels had the lowest MSE per unit time;
-# 10-20 bands and deeper SH levels cost more time than they saved variance,
-# 2 levels lost most of the variance reduction. See README "Measured results".
+# Defaults chosen from end-to-end measurements. 8 bands: 10-20 bands and deeper
+# SH levels cost more time than they saved variance (README "Measured
+# results"). sh_depth 2 with the closed-form proxy down to level 6
+# (DEFAULT_PROXY_DEPTH): at about the kernel operations of sh_depth 3 without
+# the proxy, 10-30 % less per-pixel variance on every sphere and map measured
+# (docs/MATH.md, "Closed-form proxy levels").
 DEFAULT_MAX_BANDS = 8
-DEFAULT_SH_DEPTH = 3
-DEFAULT_PROXY_DEPTH = 0
+DEFAULT_SH_DEPTH = 2
 
 
 class OptionError(ValueError):

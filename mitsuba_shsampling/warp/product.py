@@ -13,11 +13,14 @@ Node weights (the four children of the current cell):
 * levels ``< sh_depth``: analytic SH cell integral (clamped at 0) times the
   environment cell integral (both exact; their product estimates the integral
   of the product, exactly only at the leaves);
-* levels ``>= sh_depth``: the environment cell integrals alone, i.e. the lobe
-  is taken as constant inside the chosen ``sh_depth`` cell. A band-n lobe
-  varies on the scale of ~pi/n, so the SH work is paid for the top levels
-  only while the environment's full resolution is still reached by one
-  gather per level.
+* levels ``sh_depth .. proxy_depth - 1`` (when a per-lane
+  :class:`~.proxy_lobe.ProxyLobe` is given): the same proxy in closed form, at
+  its fitted (not band-limited) sharpness, evaluated at the children's
+  centres, times the environment cell integrals;
+* deeper levels: the environment cell integrals alone, i.e. the lobe is taken
+  as constant inside the chosen cell. The SH work is paid for the top levels
+  only while the environment's full resolution is still reached by one gather
+  per level.
 
 Measured (``scripts/bench_product.py --sh-depths``, immenstadter_horn 1k at
 pyramid depth 10, four Phong lobes s = n^2/5): a bilinear lobe estimate below
@@ -89,6 +92,11 @@ def default_sh_depth(n_bands: int) -> int:
     return max(2, math.ceil(math.log2(4 * n_bands)))
 
 
+DEFAULT_PROXY_DEPTH = 6
+"""Deepest level whose children the integrators weight by the closed-form
+proxy (:mod:`.proxy_lobe`); chosen with ``sh_depth`` 2 from the measurements
+in docs/MATH.md (section "Closed-form proxy levels")."""
+
 DEFAULT_DEFENSIVE_SHARE = 0.1
 """Share of the environment's own distribution in the product strategy (see
 :class:`ProductWeights`); chosen from ``scripts/bench_defensive.py``."""
@@ -150,9 +158,11 @@ class ProductWeights:
     estimate is never more than 1/e worse than environment sampling.
 
     Product weights, levels ``< sh_depth``: max(SH cell integral, 0) x
-    environment cell integral. Below ``sh_depth`` the lobe is taken as
-    constant inside the chosen cell, so both parts of the mixture follow the
-    environment there: the children's weights are the pyramid's own.
+    environment cell integral; then, down to ``walk_depth``, the closed-form
+    proxy at the children's centres x environment cell integral. Below that
+    the lobe is taken as constant inside the chosen cell, so both parts of
+    the mixture follow the environment there: the children's weights are the
+    pyramid's own.
 
     Lanes whose lobe has no positive mass where the map is lit (or is not
     finite) use e = 1, i.e. plain environment sampling.
@@ -226,11 +236,17 @@ class ProductWarp:
         Weight e of the environment's own distribution in the sampled
         mixture (1 - e) product + e environment (:class:`ProductWeights`).
 
-    ``sample(coeffs, u)`` returns (world direction, solid-angle pdf);
-    ``pdf(coeffs, d)`` evaluates the density for world directions. ``coeffs``
-    are n^2 per-lane SH coefficients in the grid frame. The pdf is positive
-    wherever the pyramid is (every lit direction), for any coefficients; only
-    a black map gives pdf 0.
+    Parameter ``proxy_depth`` (int or None):
+        Levels down to which the closed-form proxy, when ``sample`` / ``pdf``
+        get one, weights the children below the SH levels (None: none).
+        Capped at the pyramid's depth.
+
+    ``sample(coeffs, u, proxy=None)`` returns (world direction, solid-angle
+    pdf); ``pdf(coeffs, d, proxy=None)`` evaluates the density for world
+    directions. ``coeffs`` are n^2 per-lane SH coefficients in the grid frame,
+    ``proxy`` the same lobe in closed form (:class:`~.proxy_lobe.ProxyLobe`).
+    The pdf is positive wherever the pyramid is (every lit direction), for any
+    coefficients; only a black map gives pdf 0.
     """
 
     def __init__(self, pyramid, sh_depth: int | None = None,
