@@ -13,7 +13,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.integrators.options import (  # noqa: E402
-    MAX_BANDS, MIN_BANDS, DirectOptions, OptionError, PathOptions)
+    DEFAULT_SH_DEPTH, MAX_BANDS, MIN_BANDS, DirectOptions, OptionError, PathOptions)
 from mitsuba_shsampling.lobes.scene_lobes import DIFFUSE_BANDS  # noqa: E402
 from mitsuba_shsampling.sh.basis import MAX_ORDER  # noqa: E402
 from mitsuba_shsampling.warp.hierarchy import MAX_DEPTH  # noqa: E402
@@ -83,7 +83,7 @@ def test_options_validate_outside_plugins_too():
     assert PathOptions(max_depth=0).max_depth == 0
     with pytest.raises(OptionError, match="sh_path: parameter 'max_depth'"):
         PathOptions(max_depth=-5)
-    assert DirectOptions(sh_depth=-1).warp_sh_depth is None and DirectOptions().warp_sh_depth == 3
+    assert DirectOptions(sh_depth=-1).warp_sh_depth is None and DirectOptions().warp_sh_depth == DEFAULT_SH_DEPTH
 
 
 def small_scene(pixel_format="rgba"):
