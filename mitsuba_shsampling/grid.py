@@ -46,6 +46,19 @@ class Cell:
         self.area = dz * dphi
 
 
+def child_phi_centres(cos_c, sin_c, level: int):
+    """(cos, sin) of the phi centres of the left and the right children of a
+    level-``level`` cell whose phi centre has cosine ``cos_c`` and sine
+    ``sin_c``: c -+ h, h = pi / 2^(level + 1), by angle addition (h is a
+    Python constant, so no sine or cosine is evaluated per lane).
+
+    Returns (cos_left, sin_left, cos_right, sin_right)."""
+    h = math.pi / 2 ** (level + 1)
+    cos_h, sin_h = math.cos(h), math.sin(h)
+    return (dr.fma(cos_c, cos_h, sin_c * sin_h), dr.fma(sin_c, cos_h, -cos_c * sin_h),
+            dr.fma(cos_c, cos_h, -sin_c * sin_h), dr.fma(sin_c, cos_h, cos_c * sin_h))
+
+
 def grid_direction(z, phi) -> mi.Vector3f:
     """Unit direction (grid frame) of cylinder coordinates (z, phi)."""
     s = dr.safe_sqrt(dr.fma(-z, z, 1.0))

@@ -114,7 +114,7 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
     bsdf_ptr = si.bsdf(ray)
     ctx = mi.BSDFContext()
     smooth = hit & mi.has_flag(bsdf_ptr.flags(), mi.BSDFFlags.Smooth)
-    coeffs, use_product = env.lobe(si, smooth)
+    lobe, use_product = env.lobe(si, smooth)
     if product_only_lanes:
         all_hits = hit.numpy().copy()
         hit &= env.product_carries_all(si, bsdf_ptr, use_product)
@@ -130,8 +130,8 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
         if not env.active:
             return mitsuba_pdf
         if product_only_lanes:
-            return dr.select(use_product, env.warp_plain.pdf(coeffs, d), 0.0)
-        product_pdf = env.pdf(coeffs, d, use_product)
+            return dr.select(use_product, env.warp_plain.pdf(lobe.coeffs, d, lobe.proxy), 0.0)
+        product_pdf = env.pdf(lobe, d, use_product)
         return dr.select(use_product, product_pdf, mitsuba_pdf)
 
     def integrand_and_pdfs(d):

@@ -13,7 +13,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.integrators.options import (  # noqa: E402
-    MAX_BANDS, MIN_BANDS, DirectOptions, OptionError, PathOptions)
+    DEFAULT_SH_DEPTH, MAX_BANDS, MIN_BANDS, DirectOptions, OptionError, PathOptions)
 from mitsuba_shsampling.lobes.scene_lobes import DIFFUSE_BANDS  # noqa: E402
 from mitsuba_shsampling.sh.basis import MAX_ORDER  # noqa: E402
 from mitsuba_shsampling.warp.hierarchy import MAX_DEPTH  # noqa: E402
@@ -34,6 +34,7 @@ def load_error(props) -> str:
     ("sh_direct", "emitter_samples", 1.5, "an integer", "float 1.5"),
     ("sh_direct", "mis_compensation", 1, "a boolean", "integer 1"),
     ("sh_direct", "defensive_share", "0.1", "a float", "string '0.1'"),
+    ("sh_direct", "proxy_depth", 6.0, "an integer", "float 6.0"),
     ("sh_path", "max_depth", "4", "an integer", "string '4'"),
     ("sh_path", "rr_depth", 5.0, "an integer", "float 5.0"),
 ])
@@ -59,6 +60,7 @@ def test_hide_emitters_of_the_wrong_type_is_refused_by_mitsubas_own_property_che
     ("sh_direct", "sh_depth", -2, f"must be in [1, {MAX_DEPTH}] or -1 (automatic)"),
     ("sh_path", "max_bands", MAX_BANDS + 1, f"must be in [{MIN_BANDS}, {MAX_BANDS}]"),
     ("sh_path", "defensive_share", 1.5, "must be in (0, 1]"),
+    ("sh_path", "proxy_depth", MAX_DEPTH + 1, f"must be in [0, {MAX_DEPTH}]"),
 ])
 def test_a_parameter_out_of_range_names_the_allowed_range(plugin, name, value, requirement):
     kind = "float" if isinstance(value, float) else "integer"
@@ -81,7 +83,7 @@ def test_options_validate_outside_plugins_too():
     assert PathOptions(max_depth=0).max_depth == 0
     with pytest.raises(OptionError, match="sh_path: parameter 'max_depth'"):
         PathOptions(max_depth=-5)
-    assert DirectOptions(sh_depth=-1).warp_sh_depth is None and DirectOptions().warp_sh_depth == 3
+    assert DirectOptions(sh_depth=-1).warp_sh_depth is None and DirectOptions().warp_sh_depth == DEFAULT_SH_DEPTH
 
 
 def small_scene(pixel_format="rgba"):

@@ -21,12 +21,13 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba import chi2  # noqa: E402
 
-from mitsuba_shsampling.grid import grid_direction  # noqa: E402
+from mitsuba_shsampling.grid import Cell, child_phi_centres, grid_direction  # noqa: E402
 from mitsuba_shsampling.envmap import EnvPyramid  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import constant_latlong, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
 from mitsuba_shsampling.fidelity import product_fidelity  # noqa: E402
 from mitsuba_shsampling.warp.product import ProductWarp, default_sh_depth  # noqa: E402
+from mitsuba_shsampling.warp.proxy_lobe import ProxyLobe  # noqa: E402
 
 from conftest import ENVMAPS_DIR
 
@@ -324,3 +325,96 @@ def test_invalid_sh_depth_is_rejected(sun_pyramid):
             ProductWarp(sun_pyramid, sh_depth=bad)
     with pytest.raises(TypeError):
         ProductWarp(sun_pyramid, sh_depth=2.5)
+
+
+# ------------------------------------- closed-form proxy below the SH levels
+
+def proxy_lobe(normal, w_d, mirror, w_g, s) -> ProxyLobe:
+    """One two-lobe proxy (grid frame) shared by all lanes."""
+    def unit(v):
+        return mi.Vector3f(*(float(x) for x in np.asarray(v) / np.linalg.norm(v)))
+    return ProxyLobe(unit(normal), mi.Float(w_d), unit(mirror), mi.Float(w_g), mi.Float(s))
+
+
+def per_lane_proxies(count: int, seed: int) -> ProxyLobe:
+    """Random proxies, exponents from 0 to +inf (a mirror), one per lane."""
+    rng = np.random.default_rng(seed)
+    normal = rng.normal(size=(3, count)).astype(np.float32)
+    mirror = rng.normal(size=(3, count)).astype(np.float32)
+    s = 10.0 ** rng.uniform(-1.0, 4.0, count)
+    s[::17], s[::23] = np.inf, 0.0
+    return ProxyLobe(dr.normalize(mi.Vector3f(normal)), mi.Float(rng.uniform(0, 1, count).astype(np.float32)),
+                     dr.normalize(mi.Vector3f(mirror)), mi.Float(rng.uniform(0, 1, count).astype(np.float32)),
+                     mi.Float(s.astype(np.float32)))
+
+
+#: A sharp glossy lobe (s = 400, far beyond what 8 bands hold) plus a diffuse part.
+SHARP_PROXY = dict(normal=(0.2, -0.3, 0.93), w_d=0.2, mirror=(0.5, -0.4, 0.77), w_g=0.7, s=400.0)
+
+
+def test_chi2_samples_follow_own_pdf_with_proxy_levels(real_pyramid):
+    warp = ProductWarp(real_pyramid, sh_depth=3, proxy_depth=6)
+    proxy = proxy_lobe(**SHARP_PROXY)
+    coeffs = opaque(zonal_lobe(phong_attenuation(20.0, 8), SHARP_PROXY["mirror"]))
+    pyramid = warp.pyramid
+    test = chi2.ChiSquareTest(
+        domain=chi2.SphericalDomain(),
+        sample_func=lambda u: pyramid.grid_from_world(warp.sample(coeffs, u, proxy)[0]),
+        pdf_func=lambda d: warp.pdf(coeffs, pyramid.world_from_grid(d), proxy),
+        sample_dim=2, sample_count=1_000_000, res=1 << warp.depth, ires=2, seed=3)
+    assert test.run(0.01), test.messages
+
+
+def test_proxy_levels_sample_returns_the_pdf_that_pdf_evaluates_and_keep_the_defensive_share(sun_pyramid):
+    count = 1 << 14
+    coeffs, proxies = per_lane_lobes(5, count, seed=2), per_lane_proxies(count, seed=3)
+    warp = ProductWarp(sun_pyramid, sh_depth=2, proxy_depth=6)
+    d, pdf = warp.sample(coeffs, uniform_samples(count), proxies)
+    pdf, again = pdf.numpy(), warp.pdf(coeffs, d, proxies).numpy()
+    assert np.all(np.isfinite(pdf)) and np.all(pdf > 0)
+    assert np.max(np.abs(again - pdf) / pdf) <= 1e-4
+    uniform = mi.warp.square_to_uniform_sphere(uniform_samples(count, seed=8))
+    pdf_env = ProductWarp(sun_pyramid, defensive_share=1.0).pdf(coeffs, uniform).numpy()
+    pdf = warp.pdf(coeffs, uniform, proxies).numpy()
+    assert np.all(pdf >= warp.defensive_share * pdf_env * (1.0 - 1e-4))
+
+
+def test_proxy_levels_pdf_integrates_to_one(sun_pyramid):
+    warp = ProductWarp(sun_pyramid, sh_depth=3, proxy_depth=7)
+    coeffs = opaque(zonal_lobe(phong_attenuation(20.0, 8), (0.5, -0.4, 0.77)))
+    pdf = warp.pdf(coeffs, leaf_centre_directions(warp), proxy_lobe(**SHARP_PROXY)).numpy().astype(np.float64)
+    assert pdf.sum() * 4.0 * math.pi / 4**warp.depth == pytest.approx(1.0, rel=1e-4)
+
+
+def all_children_values(proxy: ProxyLobe, level: int) -> np.ndarray:
+    """The proxy's values at the children of every cell of ``level``: shape (4, 4^level)."""
+    cells = 1 << level
+    iz, iphi = np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij")
+    cell = Cell(level, mi.UInt32(iz.ravel()), mi.UInt32(iphi.ravel()))
+    sin_c, cos_c = dr.sincos(cell.phim)
+    return np.stack([v.numpy() for v in proxy.children_values(cell, child_phi_centres(cos_c, sin_c, level))])
+
+
+@pytest.mark.parametrize("s", [0.0, 3.0, 40.0])
+def test_closed_form_proxy_has_the_fitted_energy(s):
+    """Each part of the proxy has unit integral, so on a grid fine against the
+    lobe the children's values times their solid angle sum to w_d + w_g."""
+    proxy = proxy_lobe(normal=(0.3, 0.1, 0.9), w_d=0.25, mirror=(-0.2, 0.6, 0.4), w_g=0.75, s=s)
+    level = 7
+    child_area = 4.0 * math.pi / 4 ** (level + 1)
+    assert all_children_values(proxy, level).sum() * child_area == pytest.approx(1.0, rel=0.01)
+
+
+@pytest.mark.parametrize("s", [1e4, math.inf])
+def test_closed_form_proxy_peaks_at_the_mirror_and_stays_finite_for_sharp_lobes(s):
+    mirror = np.array([-0.2, 0.6, 0.4]) / np.linalg.norm([-0.2, 0.6, 0.4])
+    proxy = proxy_lobe(normal=(0.3, 0.1, 0.9), w_d=0.25, mirror=mirror, w_g=0.75, s=s)
+    level = 4
+    values = all_children_values(proxy, level)
+    assert np.all(np.isfinite(values)) and np.all(values >= 0)
+    cells = 1 << (level + 1)
+    z, phi = mirror[2], math.atan2(mirror[1], mirror[0]) % (2 * math.pi)
+    iz, iphi = int((z + 1) / 2 * cells), int(phi / (2 * math.pi) * cells)
+    child = 2 * (iz & 1) + (iphi & 1)
+    parent = (iz >> 1) * (cells >> 1) + (iphi >> 1)
+    assert values[child, parent] == values.max()

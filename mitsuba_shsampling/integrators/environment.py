@@ -10,6 +10,7 @@ Mitsuba counterparts.
 from __future__ import annotations
 
 import warnings
+from typing import NamedTuple
 
 import drjit as dr
 import mitsuba as mi
@@ -17,7 +18,8 @@ import mitsuba as mi
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
 from ..lobes.scene_lobes import DIFFUSE_BANDS, registry_id
-from ..warp.product import DEFAULT_DEFENSIVE_SHARE, ProductWarp
+from ..warp.proxy_lobe import ProxyLobe
+from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, ProductWarp
 
 
 class ProductEnvironment:
@@ -31,7 +33,7 @@ class ProductEnvironment:
 
     def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None,
                  mis_compensation: bool = True, defensive_share: float = DEFAULT_DEFENSIVE_SHARE,
-                 plain_product: bool = False):
+                 plain_product: bool = False, proxy_depth: int | None = DEFAULT_PROXY_DEPTH):
         self.scene = scene
         self.emitter = scene.environment()
         self.pyramid = self.lobes = self.warp = None
@@ -54,7 +56,8 @@ class ProductEnvironment:
         if self.pyramid.is_black:
             self.reason = "the environment map is black"
             return
-        self.warp = ProductWarp(self.pyramid, sh_depth=sh_depth, defensive_share=defensive_share)
+        self.warp = ProductWarp(self.pyramid, sh_depth=sh_depth, defensive_share=defensive_share,
+                                proxy_depth=proxy_depth)
         #: The product with the map itself (not compensated): the strategy of
         #: lanes where it carries every sample, so that nothing is left to a
         #: BSDF sample that does not run there. The same warp when the scene's
@@ -63,7 +66,8 @@ class ProductEnvironment:
         self.warp_plain = self.warp
         if self.pyramid.mis_compensation:
             self.warp_plain = (ProductWarp(EnvPyramid(self.emitter), sh_depth=sh_depth,
-                                           defensive_share=defensive_share) if plain_product else None)
+                                           defensive_share=defensive_share, proxy_depth=proxy_depth)
+                               if plain_product else None)
         self.active = True
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it:
@@ -74,12 +78,12 @@ class ProductEnvironment:
     # product sampling they reduce to Mitsuba's own strategies and trace nothing.
 
     def lobe(self, si: mi.SurfaceInteraction3f, smooth: mi.Bool):
-        """(coeffs, use_product) of the lobe proxy at ``si`` in the grid frame;
-        (None, False) where product sampling does not run."""
+        """(lobe, use_product): the lobe proxy at ``si`` in the grid frame
+        (:class:`LaneLobe`); (None, False) where product sampling does not run."""
         if not self.active:
             return None, mi.Bool(False)
-        coeffs, use_product = self.lobes.coefficients(si, self.pyramid.grid_from_world, smooth)
-        return coeffs, use_product & smooth
+        coeffs, proxy, use_product = self.lobes.coefficients_and_proxy(si, self.pyramid.grid_from_world, smooth)
+        return LaneLobe(coeffs, proxy), use_product & smooth
 
     def product_carries_all(self, si, bsdf, use_product: mi.Bool) -> mi.Bool:
         """Per lane: the product alone follows the integrand closely (its lobe
@@ -99,7 +103,7 @@ class ProductEnvironment:
             return False
         return product_only & self.lobes.is_diffuse(si, product_only)
 
-    def sample_product(self, coeffs, u: mi.Point2f, plain, diffuse=False):
+    def sample_product(self, lobe, u: mi.Point2f, plain, diffuse=False):
         """(direction, exact pdf) of one product sample: from :attr:`warp_plain`
         in ``plain`` lanes, from :attr:`warp` in the others; ``diffuse`` lanes
         (glossy part minor, a subset of ``plain``) walk with the
@@ -107,25 +111,25 @@ class ProductEnvironment:
         describe them, at a fraction of the cost. Symbolic branches, so a SIMD
         packet runs only the walk its lanes need."""
         if plain is False:
-            return self.warp.sample(coeffs, u)
+            return self.warp.sample(lobe.coeffs, u, lobe.proxy)
 
         def plain_sample(c, v):
-            if diffuse is False or len(c) <= DIFFUSE_BANDS**2:
-                return self.warp_plain.sample(c, v)
+            if diffuse is False or len(c.coeffs) <= DIFFUSE_BANDS**2:
+                return self.warp_plain.sample(c.coeffs, v, c.proxy)
             return dr.if_stmt(args=(c, v), cond=diffuse,
-                              true_fn=lambda c3, w: self.warp_plain.sample(c3[:DIFFUSE_BANDS**2], w),
-                              false_fn=lambda c3, w: self.warp_plain.sample(c3, w))
+                              true_fn=lambda c3, w: self.warp_plain.sample(c3.coeffs[:DIFFUSE_BANDS**2], w, c3.proxy),
+                              false_fn=lambda c3, w: self.warp_plain.sample(c3.coeffs, w, c3.proxy))
 
         if self.warp_plain is self.warp:
-            return plain_sample(coeffs, u)
-        return dr.if_stmt(args=(coeffs, u), cond=plain, true_fn=plain_sample,
-                          false_fn=lambda c, v: self.warp.sample(c, v))
+            return plain_sample(lobe, u)
+        return dr.if_stmt(args=(lobe, u), cond=plain, true_fn=plain_sample,
+                          false_fn=lambda c, v: self.warp.sample(c.coeffs, v, c.proxy))
 
-    def pdf(self, coeffs, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
+    def pdf(self, lobe, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
         """Product-sampling pdf of world direction ``d`` (0 where inactive)."""
         if not self.active:
             return mi.Float(0.0)
-        return dr.select(active, self.warp.pdf(coeffs, d), 0.0)
+        return dr.select(active, self.warp.pdf(lobe.coeffs, d, lobe.proxy), 0.0)
 
     def hit_pdf(self, emitter, use_product: mi.Bool, product_pdf, emitter_pdf):
         """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the
@@ -134,7 +138,7 @@ class ProductEnvironment:
             return emitter_pdf
         return dr.select(use_product & self.is_environment(emitter), product_pdf, emitter_pdf)
 
-    def product_nee(self, scene, u, si, bsdf, ctx, coeffs, use_product, product_only,
+    def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, product_only,
                     frac_e, frac_b, diffuse=False):
         """One product sample of the environment (BSDF value x radiance / pdf).
 
@@ -144,7 +148,7 @@ class ProductEnvironment:
         strategies' sample-count fractions."""
         if not self.active:
             return mi.Spectrum(0.0)
-        d, pdf_p = self.sample_product(coeffs, u, product_only, diffuse)
+        d, pdf_p = self.sample_product(lobe, u, product_only, diffuse)
         act = use_product & (pdf_p > 0)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
         act &= ~scene.ray_test(si.spawn_ray(d), act)
@@ -174,6 +178,15 @@ class ProductEnvironment:
             mi.UInt32, mi.EmitterPtr(self.emitter))
 
 
+class LaneLobe(NamedTuple):
+    """The lobe proxy of each lane, in the two forms the product warp uses."""
+
+    coeffs: list
+    """SH coefficients (grid frame), for the SH levels."""
+    proxy: ProxyLobe | None
+    """The same proxy in closed form, for the levels below them (see ``proxy_depth``)."""
+
+
 def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
     """An interaction that makes ``envmap.eval`` return the radiance arriving from ``d``."""
     si = dr.zeros(mi.SurfaceInteraction3f)
@@ -201,16 +214,18 @@ class SceneCache:
     """
 
     def __init__(self, max_bands: int, sh_depth: int | None, mis_compensation: bool,
-                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE, plain_product: bool = False):
+                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE, plain_product: bool = False,
+                 proxy_depth: int | None = None):
         self.max_bands, self.sh_depth, self.mis_compensation = max_bands, sh_depth, mis_compensation
         self.defensive_share, self.plain_product = defensive_share, plain_product
+        self.proxy_depth = proxy_depth
         self._scene, self._env = None, None
         self._key, self._held = None, []
 
     def get(self, scene: mi.Scene) -> ProductEnvironment:
         if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
             self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation,
-                                           self.defensive_share, self.plain_product)
+                                           self.defensive_share, self.plain_product, self.proxy_depth)
             self._scene = scene
             # Read after the build, which may have sanitised the envmap's data.
             inputs = self._inputs(scene)

@@ -36,19 +36,20 @@ from ..sh.basis import MAX_ORDER
 from ..warp.hierarchy import MAX_DEPTH
 from ..warp.oracle import (DEFAULT_RESOLUTION as DEFAULT_ORACLE_RESOLUTION,
                            MAX_RESOLUTION as MAX_ORACLE_RESOLUTION, check_resolution)
-from ..warp.product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share
+from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, check_defensive_share
 
 #: Band counts the lobe proxies support: the diffuse part needs 3 bands, the SH
 #: basis goes to l = MAX_ORDER.
 MIN_BANDS, MAX_BANDS = DIFFUSE_BANDS, MAX_ORDER + 1
 
-# Defaults chosen from end-to-end measurements (96x96, gold GGX sphere on a
-# plane, immenstadter_horn and studio maps, alpha 0.1 and 0.3): 8 bands with
-# analytic SH weights on the top 3 levels had the lowest MSE per unit time;
-# 10-20 bands and deeper SH levels cost more time than they saved variance,
-# 2 levels lost most of the variance reduction. See README "Measured results".
+# Defaults chosen from end-to-end measurements. 8 bands: 10-20 bands and deeper
+# SH levels cost more time than they saved variance (README "Measured
+# results"). sh_depth 2 with the closed-form proxy down to level 6
+# (DEFAULT_PROXY_DEPTH): at about the kernel operations of sh_depth 3 without
+# the proxy, 10-30 % less per-pixel variance on every sphere and map measured
+# (docs/MATH.md, "Closed-form proxy levels").
 DEFAULT_MAX_BANDS = 8
-DEFAULT_SH_DEPTH = 3
+DEFAULT_SH_DEPTH = 2
 
 
 class OptionError(ValueError):
@@ -124,6 +125,12 @@ class ProductOptions(PluginOptions):
         f"Levels of the product hierarchy that use analytic SH cell integrals (1..{MAX_DEPTH}, "
         "or -1: from the band count, 2^k >= 4 n); below them the lobe is taken as constant and "
         "only the environment is refined."))
+    proxy_depth: int = dataclasses.field(default=DEFAULT_PROXY_DEPTH, metadata=_doc(
+        "Levels of the product hierarchy, counted from the root, down to which the children are "
+        "weighted by the lobe proxy in closed form (its fitted exponent, not widened to the band "
+        f"limit, blurred to the cell size) times the environment (0..{MAX_DEPTH}); the levels "
+        "between ``sh_depth`` and this use it, deeper ones follow the environment alone. A value "
+        "not above ``sh_depth`` switches it off."))
     mis_compensation: bool = dataclasses.field(default=True, metadata=_doc(
         "Product-sample against the environment minus its mean radiance (clamped at 0), "
         "leaving the smooth part to BSDF sampling, as Mitsuba's ``envmap`` option of the "
@@ -141,6 +148,8 @@ class ProductOptions(PluginOptions):
             self._fail("max_bands", f"must be in [{MIN_BANDS}, {MAX_BANDS}]", self.max_bands)
         if not (self.sh_depth == -1 or 1 <= self.sh_depth <= MAX_DEPTH):
             self._fail("sh_depth", f"must be in [1, {MAX_DEPTH}] or -1 (automatic)", self.sh_depth)
+        if not 0 <= self.proxy_depth <= MAX_DEPTH:
+            self._fail("proxy_depth", f"must be in [0, {MAX_DEPTH}]", self.proxy_depth)
         try:
             check_defensive_share(self.defensive_share)
         except ValueError:

@@ -56,7 +56,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # product: built only when allocation can happen.
         self.scenes = SceneCache(self.options.max_bands, self.options.warp_sh_depth,
                                  self.options.mis_compensation, self.options.defensive_share,
-                                 plain_product=self.allocation and self.bsdf_samples > 0)
+                                 plain_product=self.allocation and self.bsdf_samples > 0,
+                                 proxy_depth=self.options.proxy_depth or None)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass

@@ -50,7 +50,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         self.rr_depth = self.options.rr_depth
         self.hide_emitters = self.options.hide_emitters
         self.scenes = SceneCache(self.options.max_bands, self.options.warp_sh_depth,
-                                 self.options.mis_compensation, self.options.defensive_share)
+                                 self.options.mis_compensation, self.options.defensive_share,
+                                 proxy_depth=self.options.proxy_depth or None)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass

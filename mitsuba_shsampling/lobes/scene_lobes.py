@@ -30,6 +30,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..sh.zonal import clamped_cosine_attenuation, phong_attenuation, zonal_to_sh
+from ..warp.proxy_lobe import ProxyLobe
 from .fit import fit_two_lobe, mirror_quadrature, tabulate_lobe, uv_positions, varies_over_surface
 
 BAND_ATTENUATION_TOL = 0.1
@@ -304,9 +305,19 @@ class SceneLobes:
         ``use_product`` is False for delta, unsupported and invalid lanes, whose
         coefficients are zero. Traceable: no host round trip, one kernel.
         """
+        coeffs, _, use_product = self.coefficients_and_proxy(si, grid_from_world, active)
+        return coeffs, use_product
+
+    def coefficients_and_proxy(self, si: mi.SurfaceInteraction3f,
+                               grid_from_world: Callable[[mi.Vector3f], mi.Vector3f],
+                               active: mi.Bool = True) -> tuple[list, ProxyLobe | None, mi.Bool]:
+        """:meth:`coefficients`, and the same proxy in closed form
+        (:class:`~mitsuba_shsampling.warp.proxy_lobe.ProxyLobe`, with the
+        fitted exponent before the band-limit clamp; None without product lobes)."""
         if not self.has_product_lobes:
-            return [], mi.Bool(False)
-        w_d, w_g, s, use_product = self.lookup(si, active)
+            return [], None, mi.Bool(False)
+        w_d, w_g, s_fitted, use_product = self._fitted(si, active)
+        s = dr.minimum(s_fitted, self.max_exponent)
 
         wi = si.wi
         side = dr.select(wi.z < 0, -1.0, 1.0)
@@ -317,4 +328,6 @@ class SceneLobes:
         cosine = clamped_cosine_attenuation(DIFFUSE_BANDS)
         diffuse = zonal_to_sh([w_d * (lam / cosine[0]) for lam in cosine], normal)
         coeffs = [c + (diffuse[i] if i < len(diffuse) else 0.0) for i, c in enumerate(glossy)]
-        return [dr.select(use_product, c, 0.0) for c in coeffs], use_product
+        proxy = ProxyLobe(normal, dr.select(use_product, w_d, 0.0), mirror,
+                          dr.select(use_product, w_g, 0.0), s_fitted)
+        return [dr.select(use_product, c, 0.0) for c in coeffs], proxy, use_product

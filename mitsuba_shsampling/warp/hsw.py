@@ -35,7 +35,7 @@ from typing import NamedTuple
 import drjit as dr
 import mitsuba as mi
 
-from ..grid import Cell, grid_coordinates, grid_direction
+from ..grid import Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of, sh_eval_sum_on_circle
 from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives,
                             phi_integrals_centred)
@@ -116,12 +116,8 @@ class SHCellWeights:
         z_lo = {k: f_mid[k] - state.f_lo[k] for k in f_mid}
         a_lo = contract_z(self.coeffs, z_lo, self.order)
         a_hi = [ac - al for ac, al in zip(state.a_cell, a_lo)]
-        # Children's centres c -+ h by angle addition (h is a Python constant).
+        cos_l, sin_l, cos_r, sin_r = child_phi_centres(state.cos_c, state.sin_c, cell.level)
         h = math.pi / 2 ** (cell.level + 1)
-        cos_h, sin_h = math.cos(h), math.sin(h)
-        cos_c, sin_c = state.cos_c, state.sin_c
-        cos_l, sin_l = dr.fma(cos_c, cos_h, sin_c * sin_h), dr.fma(sin_c, cos_h, -cos_c * sin_h)
-        cos_r, sin_r = dr.fma(cos_c, cos_h, -sin_c * sin_h), dr.fma(sin_c, cos_h, cos_c * sin_h)
         left = phi_integrals_centred(cos_l, sin_l, h, self.order)
         right = phi_integrals_centred(cos_r, sin_r, h, self.order)
         weights = (contract_phi(a_lo, left), contract_phi(a_lo, right),

@@ -13,11 +13,14 @@ Node weights (the four children of the current cell):
 * levels ``< sh_depth``: analytic SH cell integral (clamped at 0) times the
   environment cell integral (both exact; their product estimates the integral
   of the product, exactly only at the leaves);
-* levels ``>= sh_depth``: the environment cell integrals alone, i.e. the lobe
-  is taken as constant inside the chosen ``sh_depth`` cell. A band-n lobe
-  varies on the scale of ~pi/n, so the SH work is paid for the top levels
-  only while the environment's full resolution is still reached by one
-  gather per level.
+* levels ``sh_depth .. proxy_depth - 1`` (when a per-lane
+  :class:`~.proxy_lobe.ProxyLobe` is given): the same proxy in closed form, at
+  its fitted (not band-limited) sharpness, evaluated at the children's
+  centres, times the environment cell integrals;
+* deeper levels: the environment cell integrals alone, i.e. the lobe is taken
+  as constant inside the chosen cell. The SH work is paid for the top levels
+  only while the environment's full resolution is still reached by one gather
+  per level.
 
 Measured (``scripts/bench_product.py --sh-depths``, immenstadter_horn 1k at
 pyramid depth 10, four Phong lobes s = n^2/5): a bilinear lobe estimate below
@@ -48,11 +51,12 @@ from typing import NamedTuple
 import drjit as dr
 import mitsuba as mi
 
-from ..grid import Cell, grid_coordinates, grid_direction
+from ..grid import Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of
 from .hierarchy import (Split, check_depth, descend_pyramid_pdf, descend_pyramid_sample, select_child,
                         walk_pdf, walk_sample)
 from .hsw import SHCellState, SHCellWeights
+from .proxy_lobe import ProxyLobe
 
 
 #: Fraction of a leaf's width kept clear of its edges when placing a sample
@@ -88,6 +92,11 @@ def default_sh_depth(n_bands: int) -> int:
     return max(2, math.ceil(math.log2(4 * n_bands)))
 
 
+DEFAULT_PROXY_DEPTH = 6
+"""Deepest level whose children the integrators weight by the closed-form
+proxy (:mod:`.proxy_lobe`); chosen with ``sh_depth`` 2 from the measurements
+in docs/MATH.md (section "Closed-form proxy levels")."""
+
 DEFAULT_DEFENSIVE_SHARE = 0.1
 """Share of the environment's own distribution in the product strategy (see
 :class:`ProductWeights`); chosen from ``scripts/bench_defensive.py``."""
@@ -113,6 +122,8 @@ class ProductState(NamedTuple):
     """Absolute probability of the current cell under the product part."""
     share: mi.Float | None
     """Per-lane defensive share (e, or 1 where the lobe has no mass); None at the root."""
+    centre: tuple | None = None
+    """(cos, sin) of the cell's phi centre, on the closed-form proxy levels."""
 
 
 class ProductSplit(NamedTuple):
@@ -120,6 +131,8 @@ class ProductSplit(NamedTuple):
     conditional: list
     """The four children's conditional probabilities under the product part."""
     share: mi.Float
+    centres: tuple | None
+    """(cos, sin) of the children's phi centres (closed-form proxy levels)."""
 
 
 class ProductWeights:
@@ -145,18 +158,24 @@ class ProductWeights:
     estimate is never more than 1/e worse than environment sampling.
 
     Product weights, levels ``< sh_depth``: max(SH cell integral, 0) x
-    environment cell integral. Below ``sh_depth`` the lobe is taken as
-    constant inside the chosen cell, so both parts of the mixture follow the
-    environment there: the children's weights are the pyramid's own.
+    environment cell integral; then, down to ``walk_depth``, the closed-form
+    proxy at the children's centres x environment cell integral. Below that
+    the lobe is taken as constant inside the chosen cell, so both parts of
+    the mixture follow the environment there: the children's weights are the
+    pyramid's own.
 
     Lanes whose lobe has no positive mass where the map is lit (or is not
     finite) use e = 1, i.e. plain environment sampling.
     """
 
-    def __init__(self, coeffs: list, pyramid, sh_depth: int, defensive_share: float):
+    def __init__(self, coeffs: list, pyramid, sh_depth: int, defensive_share: float,
+                 proxy: ProxyLobe | None = None, proxy_depth: int | None = None):
         self.sh = SHCellWeights(coeffs)
         self.pyramid = pyramid
         self.sh_depth = sh_depth
+        self.proxy = proxy
+        #: Levels [sh_depth, walk_depth) weight the children by the closed-form proxy.
+        self.walk_depth = sh_depth if proxy is None or proxy_depth is None else max(sh_depth, proxy_depth)
         self.defensive_share = defensive_share
         self.inv_total = 1.0 / pyramid.total if pyramid.total > 0 else 0.0
 
@@ -166,10 +185,15 @@ class ProductWeights:
 
     def children(self, state: ProductState, cell: Cell) -> Split:
         env = tuple(self.pyramid.children(cell.level, cell.iz, cell.iphi))
-        if cell.level >= self.sh_depth:
+        if cell.level >= self.walk_depth:
             return Split(env, None)
-        lobe = self.sh.children(state.sh, cell)
-        product = [dr.select(w > 0, w, 0.0) * e for w, e in zip(lobe.weights, env)]  # NaN -> 0 too
+        if cell.level < self.sh_depth:
+            lobe = self.sh.children(state.sh, cell)
+            sh_pending, lobe_weights, centres = lobe.pending, lobe.weights, lobe.pending.centres
+        else:
+            centres = child_phi_centres(*state.centre, cell.level)
+            sh_pending, lobe_weights = None, self.proxy.children_values(cell, centres)
+        product = [dr.select(w > 0, w, 0.0) * e for w, e in zip(lobe_weights, env)]  # NaN -> 0 too
         total = (product[0] + product[1]) + (product[2] + product[3])
         ok = dr.isfinite(total) & (total > 0)
         share = dr.select(ok, self.defensive_share, 1.0) if cell.level == 0 else state.share
@@ -182,14 +206,18 @@ class ProductWeights:
                        for p, e in zip(product, env)]
         weights = tuple(dr.fma((1.0 - share) * state.p_product, c, share * self.inv_total * e)
                         for c, e in zip(conditional, env))
-        return Split(weights, ProductSplit(lobe.pending, conditional, share))
+        return Split(weights, ProductSplit(sh_pending, conditional, share, centres))
 
     def advance(self, state: ProductState, pending, cell: Cell, a, b) -> ProductState:
-        if cell.level >= self.sh_depth:
-            return state  # below the SH levels nothing is carried
+        if cell.level >= self.walk_depth:
+            return state  # below the product levels nothing is carried
         chosen = select_child(pending.conditional, a, b)
         sh_state = self.sh.advance(state.sh, pending.sh, cell, a, b) if cell.level < self.sh_depth - 1 else None
-        return ProductState(sh_state, state.p_product * chosen, pending.share)
+        centre = None
+        if sh_state is None and cell.level + 1 < self.walk_depth:  # the next level is a proxy level
+            cos_l, sin_l, cos_r, sin_r = pending.centres
+            centre = (dr.select(b, cos_r, cos_l), dr.select(b, sin_r, sin_l))
+        return ProductState(sh_state, state.p_product * chosen, pending.share, centre)
 
 
 class ProductWarp:
@@ -208,30 +236,38 @@ class ProductWarp:
         Weight e of the environment's own distribution in the sampled
         mixture (1 - e) product + e environment (:class:`ProductWeights`).
 
-    ``sample(coeffs, u)`` returns (world direction, solid-angle pdf);
-    ``pdf(coeffs, d)`` evaluates the density for world directions. ``coeffs``
-    are n^2 per-lane SH coefficients in the grid frame. The pdf is positive
-    wherever the pyramid is (every lit direction), for any coefficients; only
-    a black map gives pdf 0.
+    Parameter ``proxy_depth`` (int or None):
+        Levels down to which the closed-form proxy, when ``sample`` / ``pdf``
+        get one, weights the children below the SH levels (None: none).
+        Capped at the pyramid's depth.
+
+    ``sample(coeffs, u, proxy=None)`` returns (world direction, solid-angle
+    pdf); ``pdf(coeffs, d, proxy=None)`` evaluates the density for world
+    directions. ``coeffs`` are n^2 per-lane SH coefficients in the grid frame,
+    ``proxy`` the same lobe in closed form (:class:`~.proxy_lobe.ProxyLobe`).
+    The pdf is positive wherever the pyramid is (every lit direction), for any
+    coefficients; only a black map gives pdf 0.
     """
 
     def __init__(self, pyramid, sh_depth: int | None = None,
-                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE):
+                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE, proxy_depth: int | None = None):
         self.pyramid = pyramid
         self.depth = check_depth(pyramid.depth)
         #: Levels with analytic SH weights (None: chosen from the band count).
         self.sh_depth = None if sh_depth is None else check_sh_depth(sh_depth)
         self.defensive_share = check_defensive_share(defensive_share)
+        self.proxy_depth = None if proxy_depth is None else min(check_depth(proxy_depth), self.depth)
 
-    def _provider(self, coeffs):
+    def _provider(self, coeffs, proxy):
         coeffs = as_coefficients(coeffs)
         sh_depth = default_sh_depth(bands_of(coeffs)) if self.sh_depth is None else self.sh_depth
-        return ProductWeights(coeffs, self.pyramid, min(sh_depth, self.depth), self.defensive_share)
+        return ProductWeights(coeffs, self.pyramid, min(sh_depth, self.depth), self.defensive_share,
+                              proxy, self.proxy_depth)
 
-    def sample(self, coeffs, u: mi.Point2f):
+    def sample(self, coeffs, u: mi.Point2f, proxy: ProxyLobe | None = None):
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
-        provider = self._provider(coeffs)
-        cell, t, prob, valid, _ = walk_sample(provider, provider.sh_depth, u)
+        provider = self._provider(coeffs, proxy)
+        cell, t, prob, valid, _ = walk_sample(provider, provider.walk_depth, u)
         # Below sh_depth both parts of the mixture follow the environment:
         # its own pyramid finishes the walk.
         leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, cell, self.depth, t)
@@ -249,10 +285,10 @@ class ProductWarp:
         d = dr.select(valid, d, mi.warp.square_to_uniform_sphere(u))
         return d, dr.select(valid, prob * p_leaf / leaf.area, 0.0)
 
-    def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:
+    def pdf(self, coeffs, d: mi.Vector3f, proxy: ProxyLobe | None = None) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
         z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
-        provider = self._provider(coeffs)
-        cell, _, prob, _ = walk_pdf(provider, provider.sh_depth, z, phi)
+        provider = self._provider(coeffs, proxy)
+        cell, _, prob, _ = walk_pdf(provider, provider.walk_depth, z, phi)
         leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.depth, z, phi)
         return prob * p_leaf / leaf.area
