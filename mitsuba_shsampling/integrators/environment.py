@@ -224,14 +224,18 @@ class SceneCache:
 
     def get(self, scene: mi.Scene) -> ProductEnvironment:
         if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
-            self._env = ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation,
-                                           self.defensive_share, self.plain_product, self.proxy_depth)
+            self._env = self._build(scene)
             self._scene = scene
             # Read after the build, which may have sanitised the envmap's data.
             inputs = self._inputs(scene)
             self._key = self._identity(inputs)
             self._held = [type(value)(value) for value in inputs if dr.detail.collect_indices(value)]
         return self._env
+
+    def _build(self, scene: mi.Scene) -> ProductEnvironment:
+        """The per-scene state this cache holds (subclasses build other states)."""
+        return ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation,
+                                  self.defensive_share, self.plain_product, self.proxy_depth)
 
     @staticmethod
     def _inputs(scene: mi.Scene) -> list:

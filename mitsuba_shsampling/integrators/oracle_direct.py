@@ -210,11 +210,5 @@ class OracleCache(SceneCache):
         super().__init__(max_bands=0, sh_depth=None, mis_compensation=False, defensive_share=defensive_share)
         self.resolution = resolution
 
-    def get(self, scene: mi.Scene) -> OracleEnvironment:
-        if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
-            self._env = OracleEnvironment(scene, self.resolution, self.defensive_share)
-            self._scene = scene
-            inputs = self._inputs(scene)  # after the build, which may have sanitised the envmap
-            self._key = self._identity(inputs)
-            self._held = [type(value)(value) for value in inputs if dr.detail.collect_indices(value)]
-        return self._env
+    def _build(self, scene: mi.Scene) -> OracleEnvironment:
+        return OracleEnvironment(scene, self.resolution, self.defensive_share)
