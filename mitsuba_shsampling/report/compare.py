@@ -35,7 +35,8 @@ from .methods import BASELINE, DIRECT, METHODS, MULTI_BOUNCE_BASELINE, Method, a
 from .figures import sampler_demo_figures
 from .plots import convergence_figure
 from .rendering import (SEED_CONVERGENCE, SEED_EQUAL_TIME, MethodRenderer, PassSet, Reference,
-                        REFERENCE_CHUNKS, admissible_spp, load_for_settings, render_reference, write_exr)
+                        REFERENCE_CHUNKS, admissible_spp, interleaved_passes, load_for_settings,
+                        render_reference, write_exr)
 
 
 @dataclasses.dataclass
@@ -262,6 +263,12 @@ class SceneComparison:
         p99 = float(np.quantile(lum, 0.99)) if lum.size else 0.0
         return 0.9 / p99 if p99 > 0 else 1.0
 
+    def drop(self, method: Method, sampler: str, err: Exception) -> None:
+        """Note that ``method`` failed and is left out of this sampler's comparison."""
+        first_line = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        self.notes.append(f"'{method.name}' failed with the {sampler} sampler and was left out: "
+                          f"{type(err).__name__}: {first_line}")
+
     def run_sampler(self, sampler: str, methods: list[Method], refs: dict[str, Reference],
                     exposure: float) -> dict:
         s = self.settings
@@ -270,41 +277,56 @@ class SceneComparison:
         results: dict[str, MethodResult] = {}
         renderers: dict[str, MethodRenderer] = {}
 
-        # Equal ray budget: K passes each. A method that fails to load or render is dropped
-        # with a note, so one broken plugin does not cost the whole comparison.
-        equal_spp: dict[str, PassSet] = {}
+        # Equal ray budget: K passes each, timed interleaved across the methods. A method
+        # that fails to load or render is dropped with a note, so one broken plugin does
+        # not cost the whole comparison.
         for m in list(methods):
-            self.bar.set_description(f"{self.name}/{sampler}/{m.name} equal spp")
+            self.bar.set_description(f"{self.name}/{sampler}/{m.name} compile")
             try:
                 r = renderers[m.name] = MethodRenderer(self.path, m, settings)
                 r.warm_up(admissible_spp(sampler, equal_ray_spp(s.spp, m)))
-                self.bar.update(1)
-                passes = r.passes(equal_ray_spp(s.spp, m), s.passes, s.seed)
             except Exception as err:
-                self.notes.append(f"'{m.name}' failed with the {sampler} sampler and was left out: "
-                                  f"{type(err).__name__}: {str(err).strip().splitlines()[0] if str(err).strip() else ''}")
+                self.drop(m, sampler, err)
                 methods = [x for x in methods if x is not m]
-                continue
-            self.bar.update(s.passes)
-            equal_spp[m.name] = passes
+            self.bar.update(1)
+        self.bar.set_description(f"{self.name}/{sampler} equal spp (methods interleaved)")
+        equal_spp, failed = interleaved_passes(
+            {m.name: (renderers[m.name], equal_ray_spp(s.spp, m)) for m in methods},
+            s.passes, s.seed, on_pass=lambda: self.bar.update(1))
+        for m in [m for m in methods if m.name in failed]:
+            self.drop(m, sampler, failed[m.name])
+        methods = [m for m in methods if m.name in equal_spp]
+        for m in methods:
+            passes = equal_spp[m.name]
             files = save_passes(os.path.join(folder, m.name), "equal_spp", passes, exposure, self.root)
             results[m.name] = MethodResult(
                 label=m.label, family=m.family, rays_per_sample=m.rays_per_sample,
-                integrator=m.integrator, scene_params=m.scene_params, compile_time_s=r.compile_time_s,
+                integrator=m.integrator, scene_params=m.scene_params,
+                compile_time_s=renderers[m.name].compile_time_s,
                 equal_spp=measure(passes, refs[m.family], files), oracle=m.oracle)
 
         # Equal time: each method gets the spp that costs the baseline's time per pass.
+        budgets, targets = {}, {}
         for m in methods:
-            self.bar.set_description(f"{self.name}/{sampler}/{m.name} equal time")
             base = self.baseline_name(m, results)
-            budget = equal_spp[base].time_s
+            budgets[m.name] = (base, equal_spp[base].time_s)
             per_sample = equal_spp[m.name].time_s / equal_spp[m.name].spp
-            target = max(1, round(budget / per_sample)) if per_sample > 0 else equal_spp[m.name].spp
-            passes = renderers[m.name].passes(target, s.passes, s.seed + SEED_EQUAL_TIME)
-            self.bar.update(s.passes)
+            targets[m.name] = (max(1, round(budgets[m.name][1] / per_sample)) if per_sample > 0
+                               else equal_spp[m.name].spp)
+        self.bar.set_description(f"{self.name}/{sampler} equal time (methods interleaved)")
+        equal_time, failed = interleaved_passes(
+            {m.name: (renderers[m.name], targets[m.name]) for m in methods},
+            s.passes, s.seed + SEED_EQUAL_TIME, on_pass=lambda: self.bar.update(1))
+        for m in [m for m in methods if m.name in failed]:
+            self.drop(m, sampler, failed[m.name])
+            del results[m.name]
+        methods = [m for m in methods if m.name in equal_time]
+        for m in methods:
+            passes = equal_time[m.name]
             files = save_passes(os.path.join(folder, m.name), "equal_time", passes, exposure, self.root)
             result = results[m.name]
             result.equal_time = measure(passes, refs[m.family], files)
+            base, budget = budgets[m.name]
             result.equal_time.time_budget_s = budget
             result.equal_spp.budget_method = result.equal_time.budget_method = base
 

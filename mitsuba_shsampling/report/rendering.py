@@ -3,6 +3,11 @@
 Timing rule: the first render of a method compiles its kernels; it is the
 warm-up and its extra time is reported as compile time. Every later render is
 timed wall-clock until its image is evaluated (``np.array`` forces it).
+Methods that are compared are timed *interleaved* (:func:`interleaved_passes`:
+pass k of every method, then pass k + 1), so that a slow spell of the machine
+(a shared host, a frequency change) falls on all of them alike instead of on
+whichever method happened to be rendering: time ratios are only meaningful
+within one run, and this makes them meaningful within one run.
 With the ``independent`` sampler, changing spp or seed does not recompile;
 the stratified/low-discrepancy samplers recompile for each new sample count
 (measured on llvm_ad_rgb, 3.9.1), so each new spp gets its own untimed warm-up.
@@ -140,6 +145,51 @@ class MethodRenderer:
         return passes
 
 
+def interleaved_passes(jobs: dict[str, tuple[MethodRenderer, int]], count: int, seed0: int,
+                       on_pass=None) -> tuple[dict[str, PassSet], dict[str, Exception]]:
+    """``count`` timed passes of several methods, round robin: pass k of every method
+    before pass k + 1 of any (see the module's timing rule).
+
+    :param jobs: method name -> (its renderer, the spp to render; made admissible here).
+    :param seed0: pass k of every method uses seed ``seed0 + k``.
+    :param on_pass: called with no argument after every render (progress bars).
+    :returns: (PassSet per method that rendered, the exception of each method that failed;
+        a failed method is not rendered again).
+    """
+    failed: dict[str, Exception] = {}
+    spps: dict[str, int] = {}
+    for name, (renderer, spp) in jobs.items():
+        spps[name] = admissible_spp(renderer.sampler_name, spp)
+        try:
+            if spps[name] not in renderer.warm_spps:
+                renderer.warm_up(spps[name])  # samplers other than `independent` recompile per spp
+        except Exception as err:  # noqa: BLE001 (reported per method by the caller)
+            failed[name] = err
+    images: dict[str, list] = {name: [] for name in jobs if name not in failed}
+    times: dict[str, list] = {name: [] for name in images}
+    for k in range(count):
+        for name in list(images):
+            renderer = jobs[name][0]
+            try:
+                image, elapsed = renderer.render(spps[name], seed0 + k)
+            except Exception as err:  # noqa: BLE001
+                failed[name] = err
+                del images[name], times[name]
+                continue
+            images[name].append(image)
+            times[name].append(elapsed)
+            if on_pass is not None:
+                on_pass()
+    result = {}
+    for name in images:
+        renderer = jobs[name][0]
+        result[name] = PassSet(renderer.method.name, renderer.actual_spp(), np.stack(images[name]),
+                               times[name], [seed0 + k for k in range(count)])
+        if renderer.compile_time_s is None and renderer.first_render_s is not None:
+            renderer.compile_time_s = max(0.0, renderer.first_render_s - result[name].time_s)
+    return result, failed
+
+
 def load_for_settings(scene_path: str, settings: dict, mis_compensation: bool = False
                       ) -> tuple[mi.Scene, mi.Sensor]:
     """Load ``scene_path`` as written, with the comparison's envmap, and its camera rebuilt
@@ -268,5 +318,5 @@ def read_exr(path: str) -> np.ndarray:
     return np.array(mi.Bitmap(path), dtype=np.float32)
 
 
-__all__ = ["MULTI_BOUNCE", "PassSet", "MethodRenderer", "Reference", "admissible_spp",
+__all__ = ["MULTI_BOUNCE", "PassSet", "MethodRenderer", "Reference", "admissible_spp", "interleaved_passes",
            "render_reference", "reference_integrator", "write_exr", "read_exr"]
