@@ -129,7 +129,11 @@ class ProductEnvironment:
         """Product-sampling pdf of world direction ``d`` (0 where inactive)."""
         if not self.active:
             return mi.Float(0.0)
-        return dr.select(active, self.warp.pdf(lobe.coeffs, d, lobe.proxy), 0.0)
+        # A symbolic branch: a SIMD packet with no lane that needs the walk
+        # (sky, delta or occluded BSDF samples) skips it.
+        return dr.if_stmt(args=(lobe, d), cond=mi.Bool(active),
+                          true_fn=lambda c, v: self.warp.pdf(c.coeffs, v, c.proxy),
+                          false_fn=lambda c, v: mi.Float(0.0))
 
     def hit_pdf(self, emitter, use_product: mi.Bool, product_pdf, emitter_pdf):
         """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the
@@ -148,7 +152,10 @@ class ProductEnvironment:
         strategies' sample-count fractions."""
         if not self.active:
             return mi.Spectrum(0.0)
-        d, pdf_p = self.sample_product(lobe, u, product_only, diffuse)
+        # Packets without a product lane (sky, delta BSDFs, unsupported lobes) skip the walk.
+        d, pdf_p = dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
+                              true_fn=lambda c, v: self.sample_product(c, v, product_only, diffuse),
+                              false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
         act = use_product & (pdf_p > 0)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
         act &= ~scene.ray_test(si.spawn_ray(d), act)
