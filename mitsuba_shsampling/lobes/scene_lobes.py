@@ -324,10 +324,16 @@ class SceneLobes:
         normal = grid_from_world(si.sh_frame.n * side)
         mirror = grid_from_world(si.to_world(mi.Vector3f(-wi.x, -wi.y, wi.z)))
 
-        glossy = zonal_to_sh([w_g * lam for lam in phong_attenuation(s, self.n_bands)], mirror)
-        cosine = clamped_cosine_attenuation(DIFFUSE_BANDS)
-        diffuse = zonal_to_sh([w_d * (lam / cosine[0]) for lam in cosine], normal)
-        coeffs = [c + (diffuse[i] if i < len(diffuse) else 0.0) for i, c in enumerate(glossy)]
+        def rotated_lobes(w_d, w_g, s, normal, mirror):
+            glossy = zonal_to_sh([w_g * lam for lam in phong_attenuation(s, self.n_bands)], mirror)
+            cosine = clamped_cosine_attenuation(DIFFUSE_BANDS)
+            diffuse = zonal_to_sh([w_d * (lam / cosine[0]) for lam in cosine], normal)
+            return [c + (diffuse[i] if i < len(diffuse) else 0.0) for i, c in enumerate(glossy)]
+
+        # A symbolic branch: packets without a product lane skip the basis evaluation.
+        coeffs = dr.if_stmt(args=(w_d, w_g, s, normal, mirror), cond=mi.Bool(use_product),
+                            true_fn=rotated_lobes,
+                            false_fn=lambda *_: [mi.Float(0.0) for _ in range(self.n_bands**2)])
         proxy = ProxyLobe(normal, dr.select(use_product, w_d, 0.0), mirror,
                           dr.select(use_product, w_g, 0.0), s_fitted)
         return [dr.select(use_product, c, 0.0) for c in coeffs], proxy, use_product
