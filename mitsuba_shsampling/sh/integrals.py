@@ -23,6 +23,7 @@ product form (2/m sin(m dphi/2) cos(m phi_c)), which never cancels.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import drjit as dr
@@ -81,6 +82,15 @@ def legendre_antiderivatives(z, order: int) -> dict:
             p_lm = tilde * q[l, m] * s_pow[m]
             f[l + 1, m] = (c_prev / denom) * f[l - 1, m] - (c_p / denom) * one_minus_z2 * p_lm
     return f
+
+
+@functools.lru_cache(maxsize=None)
+def constant_antiderivatives(z: float, order: int) -> dict:
+    """:func:`legendre_antiderivatives` at a constant ``z``, as Python floats,
+    computed once per (z, order). Integrators trace their kernels again at
+    every render pass, and the hierarchy's top levels use the same few
+    constant rows each time. The returned dict is shared: do not modify it."""
+    return {key: float(value) for key, value in legendre_antiderivatives(float(z), order).items()}
 
 
 def z_integrals(f_lo: dict, f_hi: dict) -> dict:

@@ -37,7 +37,7 @@ import mitsuba as mi
 
 from ..grid import Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of, sh_eval_sum_on_circle
-from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives,
+from ..sh.integrals import (constant_antiderivatives, contract_phi, contract_z, legendre_antiderivatives,
                             phi_integrals_centred)
 from .hierarchy import Split, check_depth, check_leaf, leaf_density, sample_leaf, walk_pdf, walk_sample
 
@@ -88,10 +88,10 @@ class SHCellWeights:
         self.coeffs = coeffs
         self.order = bands_of(coeffs) - 1
         # Root rows are constants: evaluate them once in float64 on the host.
-        lo = legendre_antiderivatives(-1.0, self.order)
-        hi = legendre_antiderivatives(1.0, self.order)
-        self._root_lo = {k: mi.Float(float(v)) for k, v in lo.items()}
-        self._root_cell = contract_z(coeffs, {k: float(hi[k] - lo[k]) for k in hi}, self.order)
+        lo = constant_antiderivatives(-1.0, self.order)
+        hi = constant_antiderivatives(1.0, self.order)
+        self._root_lo = {k: mi.Float(v) for k, v in lo.items()}
+        self._root_cell = contract_z(coeffs, {k: hi[k] - lo[k] for k in hi}, self.order)
 
     def root(self) -> SHCellState:
         # The root spans [0, 2 pi): centre pi.
@@ -102,12 +102,12 @@ class SHCellWeights:
         if cell.level >= CONSTANT_ROW_LEVELS:
             return legendre_antiderivatives(cell.zm, self.order)
         cells = 2 ** cell.level
-        rows = [legendre_antiderivatives(-1.0 + (2 * j + 1) / cells, self.order) for j in range(cells)]
+        rows = [constant_antiderivatives(-1.0 + (2 * j + 1) / cells, self.order) for j in range(cells)]
         out = {}
         for key in rows[0]:
-            value = mi.Float(float(rows[0][key]))
+            value = mi.Float(rows[0][key])
             for j in range(1, cells):
-                value = dr.select(cell.iz == j, float(rows[j][key]), value)
+                value = dr.select(cell.iz == j, rows[j][key], value)
             out[key] = value
         return out
 
