@@ -63,3 +63,18 @@ def test_the_first_untimed_render_gives_the_compile_time():
     renderer = FakeRenderer("direct", [])
     interleaved_passes({"direct": (renderer, 4)}, count=2, seed0=0)
     assert renderer.compile_time_s == 1.0 - 0.01
+
+
+def row(budget_s, spp=8):
+    entry = {"spp": spp, "time_s": budget_s, "time_budget_s": budget_s, "times_s": [budget_s],
+             "tail_worse_than_baseline": [], "bias": {"flagged": False, "p_value": 0.5},
+             "error": {"non_finite": 0}}
+    return {"equal_spp": dict(entry), "equal_time": dict(entry)}
+
+
+def test_caveats_need_no_row_of_a_baseline_that_failed_at_equal_time():
+    """A baseline dropped in the equal-time phase leaves the others' budgets with them."""
+    from mitsuba_shsampling.report.verdict import _caveats
+    run = {"methods": {"sh_direct": row(0.005), "direct_misc": row(0.005)}}
+    notes = _caveats({}, run, ["sh_direct", "direct_misc"], "direct", ["sh_direct", "direct_misc"])
+    assert any("time budget too small" in n for n in notes)

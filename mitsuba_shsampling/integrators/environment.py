@@ -222,14 +222,16 @@ class SceneCache:
 
     def __init__(self, max_bands: int, sh_depth: int | None, mis_compensation: bool,
                  defensive_share: float = DEFAULT_DEFENSIVE_SHARE, plain_product: bool = False,
-                 proxy_depth: int | None = None):
+                 proxy_depth: int | None = DEFAULT_PROXY_DEPTH):
         self.max_bands, self.sh_depth, self.mis_compensation = max_bands, sh_depth, mis_compensation
         self.defensive_share, self.plain_product = defensive_share, plain_product
         self.proxy_depth = proxy_depth
         self._scene, self._env = None, None
         self._key, self._held = None, []
 
-    def get(self, scene: mi.Scene) -> ProductEnvironment:
+    def get(self, scene: mi.Scene):
+        """The state for ``scene`` (a :class:`ProductEnvironment`, or what a
+        subclass's :meth:`_build` makes), built again when its inputs changed."""
         if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
             self._env = self._build(scene)
             self._scene = scene

@@ -123,12 +123,12 @@ class ProductOptions(PluginOptions):
         "represents (BSDF sampling under MIS takes over)."))
     sh_depth: int = dataclasses.field(default=DEFAULT_SH_DEPTH, metadata=_doc(
         f"Levels of the product hierarchy that use analytic SH cell integrals (1..{MAX_DEPTH}, "
-        "or -1: from the band count, 2^k >= 4 n); below them the lobe is taken as constant and "
-        "only the environment is refined."))
+        "or -1: from the band count, 2^k >= 4 n); below them the closed-form proxy takes over "
+        "down to ``proxy_depth``, then the environment alone."))
     proxy_depth: int = dataclasses.field(default=DEFAULT_PROXY_DEPTH, metadata=_doc(
         "Levels of the product hierarchy, counted from the root, down to which the children are "
         "weighted by the lobe proxy in closed form (its fitted exponent, not widened to the band "
-        f"limit, blurred to the cell size) times the environment (0..{MAX_DEPTH}); the levels "
+        f"limit) times the environment (0..{MAX_DEPTH}); the levels "
         "between ``sh_depth`` and this use it, deeper ones follow the environment alone. A value "
         "not above ``sh_depth`` switches it off."))
     mis_compensation: bool = dataclasses.field(default=True, metadata=_doc(
@@ -160,6 +160,12 @@ class ProductOptions(PluginOptions):
         """``sh_depth`` as :class:`~mitsuba_shsampling.warp.product.ProductWarp` takes it
         (None: automatic)."""
         return None if self.sh_depth == -1 else self.sh_depth
+
+    @property
+    def warp_proxy_depth(self) -> int | None:
+        """``proxy_depth`` as :class:`~mitsuba_shsampling.warp.product.ProductWarp` takes it
+        (None: no closed-form proxy levels)."""
+        return self.proxy_depth or None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -57,7 +57,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         self.scenes = SceneCache(self.options.max_bands, self.options.warp_sh_depth,
                                  self.options.mis_compensation, self.options.defensive_share,
                                  plain_product=self.allocation and self.bsdf_samples > 0,
-                                 proxy_depth=self.options.proxy_depth or None)
+                                 proxy_depth=self.options.warp_proxy_depth)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass
@@ -81,7 +81,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         n_e, n_b = self.emitter_samples, self.bsdf_samples
         frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
 
-        coeffs, use_product = env.lobe(si, smooth)
+        lobe, use_product = env.lobe(si, smooth)
         # Lanes where the product alone follows the integrand give it every
         # sample (drawn from the uncompensated map); the others combine one
         # strategy per sample type under MIS.
@@ -90,7 +90,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
         # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
         for _ in range(n_e):
-            L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, coeffs,
+            L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe,
                                  use_product, product_only, frac_e, frac_b, diffuse) / n_e
         for _ in range(n_e):
             L += env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b,
@@ -101,21 +101,21 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             sample_1, sample_2 = sampler.next_1d(active), sampler.next_2d(active)
             if product_only is False:  # no allocation: not even a branch is traced
                 L += self.bsdf_sample(scene, si, bsdf, ctx, sample_1, sample_2, active, smooth, env,
-                                      use_product, coeffs, frac_e, frac_b) / n_b
+                                      use_product, lobe, frac_e, frac_b) / n_b
                 continue
             L += dr.if_stmt(
                 args=(sample_1, sample_2), cond=product_only,
                 # A product sample whose share of the lane's samples is frac_b.
-                true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, coeffs, use_product,
+                true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product,
                                                      mi.Bool(True), frac_b, frac_e, diffuse) / n_b,
                 false_fn=lambda u1, u2: self.bsdf_sample(scene, si, bsdf, ctx, u1, u2, active, smooth, env,
-                                                         use_product, coeffs, frac_e, frac_b) / n_b)
+                                                         use_product, lobe, frac_e, frac_b) / n_b)
 
         sees_environment = not self.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []
 
     def bsdf_sample(self, scene, si, bsdf, ctx, sample_1, sample_2, active, smooth, env, use_product,
-                    coeffs, frac_e, frac_b):
+                    lobe, frac_e, frac_b):
         """One BSDF sample of the emitters it hits, MIS-weighted against the
         emitter strategy of the lane (product or Mitsuba's sampling)."""
         bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active)
@@ -127,7 +127,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         Le = emitter.eval(si_b, act)
         delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         ds = mi.DirectionSample3f(scene, si_b, si)
-        pdf_em = env.hit_pdf(emitter, use_product, env.pdf(coeffs, d, act & use_product & ~delta),
+        pdf_em = env.hit_pdf(emitter, use_product, env.pdf(lobe, d, act & use_product & ~delta),
                              scene.pdf_emitter_direction(si, ds, act & ~delta))
         pdf_em = dr.select(delta | ~smooth, 0.0, pdf_em)
         weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)

@@ -51,7 +51,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         self.hide_emitters = self.options.hide_emitters
         self.scenes = SceneCache(self.options.max_bands, self.options.warp_sh_depth,
                                  self.options.mis_compensation, self.options.defensive_share,
-                                 proxy_depth=self.options.proxy_depth or None)
+                                 proxy_depth=self.options.warp_proxy_depth)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass
@@ -100,9 +100,9 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             # One sample per strategy: equal fractions (the power heuristic
             # only sees their ratio).
             smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            coeffs, use_product = env.lobe(si, smooth)
+            lobe, use_product = env.lobe(si, smooth)
             # The BSDF sample always runs (it continues the path): no lane is product-only.
-            L += beta * env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, coeffs,
+            L += beta * env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe,
                                         use_product, False, 0.5, 0.5)
             L += beta * env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, 0.5, 0.5)
 
@@ -111,7 +111,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
                                           sampler.next_2d(active_next), active_next)
             d = si.to_world(bs.wo)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            prev_product_pdf = env.pdf(coeffs, d, use_product & ~delta & active_next)
+            prev_product_pdf = env.pdf(lobe, d, use_product & ~delta & active_next)
             prev_product = use_product
             prev_si = mi.Interaction3f(si)
             prev_bsdf_pdf = bs.pdf

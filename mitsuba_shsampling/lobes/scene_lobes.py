@@ -336,4 +336,4 @@ class SceneLobes:
                             false_fn=lambda *_: [mi.Float(0.0) for _ in range(self.n_bands**2)])
         proxy = ProxyLobe(normal, dr.select(use_product, w_d, 0.0), mirror,
                           dr.select(use_product, w_g, 0.0), s_fitted)
-        return [dr.select(use_product, c, 0.0) for c in coeffs], proxy, use_product
+        return coeffs, proxy, use_product

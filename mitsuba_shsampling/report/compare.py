@@ -371,7 +371,8 @@ class SceneComparison:
         if base in results:
             return base
         same_family = [n for n, r in results.items() if r.family == method.family]
-        return same_family[0]
+        # Never a reference row: an oracle pass costs 10-200x a renderer's.
+        return ([n for n in same_family if not results[n].oracle] or same_family)[0]
 
     @staticmethod
     def compare_with_baselines(results: dict[str, MethodResult]) -> None:

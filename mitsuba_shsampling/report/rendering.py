@@ -123,27 +123,6 @@ class MethodRenderer:
             self.first_render_s = elapsed
         return elapsed
 
-    def passes(self, spp: int, count: int, seed0: int) -> PassSet:
-        """``count`` independent timed passes with seeds ``seed0 + k``."""
-        spp = admissible_spp(self.sampler_name, spp)
-        if spp not in self.warm_spps:
-            # Samplers other than `independent` recompile for a new sample count.
-            self.warm_up(spp)
-        else:
-            # Other methods rendered since this one last ran: one untimed pass
-            # first, so that no leftover compilation or cache refill is timed.
-            self.render(spp, SEED_WARMUP)
-        images, times = [], []
-        for k in range(count):
-            image, elapsed = self.render(spp, seed0 + k)
-            images.append(image)
-            times.append(elapsed)
-        passes = PassSet(self.method.name, self.actual_spp(), np.stack(images), times,
-                         [seed0 + k for k in range(count)])
-        if self.compile_time_s is None:
-            self.compile_time_s = max(0.0, self.first_render_s - passes.time_s)
-        return passes
-
 
 def interleaved_passes(jobs: dict[str, tuple[MethodRenderer, int]], count: int, seed0: int,
                        on_pass=None) -> tuple[dict[str, PassSet], dict[str, Exception]]:

@@ -117,8 +117,10 @@ def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders
     (a reference row at 1 spp within the baseline's time is what it costs, not a coarse budget)."""
     results = run["methods"]
     notes = []
-    base_time = results[baseline]["equal_spp"]["time_s"]
-    if base_time < MIN_PASS_TIME_S:
+    # The budget each row was given (stored with it: the baseline itself may have
+    # failed in the equal-time phase and left the run).
+    base_time = (results[names[0]].get("equal_time") or {}).get("time_budget_s") or 0.0
+    if 0.0 < base_time < MIN_PASS_TIME_S:
         notes.append(f"time budget too small to be meaningful: a {baseline} pass takes "
                      f"{1e3 * base_time:.1f} ms (per-launch overhead and timer noise weigh on every "
                      f"time; raise --res or --spp)")

@@ -37,10 +37,11 @@ shared by all points (its size: :attr:`EnvPyramid.nbytes`, at most ~22 MB at
 its default depth cap).
 
 Whatever the weights, the pdf is the product of the branch probabilities
-(see :mod:`.hierarchy`), so sampling is unbiased under MIS. Below
-``sh_depth`` those probabilities telescope to (leaf integral) / (integral of
-the ``sh_depth`` cell), which :func:`.hierarchy.descend_pyramid_pdf`
-evaluates with two gathers.
+(see :mod:`.hierarchy`), so sampling is unbiased under MIS. Below the
+product levels (``walk_depth`` = max(``sh_depth``, ``proxy_depth``)) those
+probabilities telescope to (leaf integral) / (integral of the cell where the
+product levels end), which :func:`.hierarchy.descend_pyramid_pdf` evaluates
+with two gathers.
 """
 
 from __future__ import annotations
@@ -229,8 +230,9 @@ class ProductWarp:
 
     Parameter ``sh_depth`` (int or None):
         Levels with analytic SH cell integrals (default: from the band count,
-        :func:`default_sh_depth`), at least 1; deeper levels follow the
-        environment alone. Capped at the pyramid's depth.
+        :func:`default_sh_depth`), at least 1; deeper levels use the
+        closed-form proxy down to ``proxy_depth``, then the environment alone.
+        Capped at the pyramid's depth.
 
     Parameter ``defensive_share`` (float in (0, 1]):
         Weight e of the environment's own distribution in the sampled
@@ -268,8 +270,8 @@ class ProductWarp:
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
         provider = self._provider(coeffs, proxy)
         cell, t, prob, valid, _ = walk_sample(provider, provider.walk_depth, u)
-        # Below sh_depth both parts of the mixture follow the environment:
-        # its own pyramid finishes the walk.
+        # Below the product levels both parts of the mixture follow the
+        # environment: its own pyramid finishes the walk.
         leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, cell, self.depth, t)
         valid &= not self.pyramid.is_black
         # Keep the point off the leaf's edges: the float32 round trip
