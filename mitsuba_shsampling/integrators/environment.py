@@ -18,8 +18,9 @@ import mitsuba as mi
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
 from ..lobes.scene_lobes import DIFFUSE_BANDS, registry_id
-from ..warp.proxy_lobe import ProxyLobe
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, ProductWarp
+from ..warp.proxy_lobe import ProxyLobe
+from .estimators import environment_ray_target, is_emitter, mis_weight, mitsuba_emitter_sample
 
 
 class ProductEnvironment:
@@ -171,18 +172,15 @@ class ProductEnvironment:
         BSDF sample runs, so its weight is 1."""
         if not self.needs_emitter_sampling:
             return mi.Spectrum(0.0)
-        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
-        act = smooth & (ds.pdf != 0)
-        if self.active:
-            act &= ~(use_product & self.is_environment(ds.emitter))
-        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
-        weight = dr.select(ds.delta | product_only, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
-        return dr.select(act, bsdf_val * em_weight * weight, 0.0)
+        def left_out(emitter):
+            return use_product & self.is_environment(emitter) if self.active else mi.Bool(False)
+
+        return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
+                                      frac_e, frac_b, weight_one=product_only)
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""
-        return dr.reinterpret_array(mi.UInt32, emitter) == dr.reinterpret_array(
-            mi.UInt32, mi.EmitterPtr(self.emitter))
+        return is_emitter(emitter, self.emitter)
 
 
 class LaneLobe(NamedTuple):
@@ -192,20 +190,6 @@ class LaneLobe(NamedTuple):
     """SH coefficients (grid frame), for the SH levels."""
     proxy: ProxyLobe | None
     """The same proxy in closed form, for the levels below them (see ``proxy_depth``)."""
-
-
-def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
-    """An interaction that makes ``envmap.eval`` return the radiance arriving from ``d``."""
-    si = dr.zeros(mi.SurfaceInteraction3f)
-    si.wi = -d
-    return si
-
-
-def mis_weight(pdf_a, pdf_b):
-    """Power heuristic (beta = 2), robust to infinite and zero pdfs."""
-    a2, b2 = dr.square(pdf_a), dr.square(pdf_b)
-    w = a2 / (a2 + b2)
-    return dr.select(dr.isfinite(w), w, 0.0)
 
 
 class SceneCache:

@@ -8,7 +8,9 @@ import mitsuba as mi
 from ..envmap.pyramid import EnvPyramid
 from ..lobes.fit import luminance
 from ..warp.oracle import OracleWarp
-from .environment import SceneCache, environment_ray_target, mis_weight
+from .environment import SceneCache
+from .estimators import (bsdf_sample_of_emitters, environment_ray_target, first_hit, is_emitter, mis_weight,
+                         mitsuba_emitter_sample)
 from .options import OracleOptions, document_parameters
 
 
@@ -76,19 +78,9 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         env = self.scenes.get(scene)
-        ray = mi.Ray3f(ray)
-        active = mi.Bool(active)
-        L = mi.Spectrum(0.0)
-
-        # ---------------------- Directly visible emitters ----------------------
-        si = scene.ray_intersect(ray, active)
-        if not self.hide_emitters:
-            L += si.emitter(scene, active).eval(si, active)
-        active &= si.is_valid()
-
-        bsdf = si.bsdf(ray)
-        ctx = mi.BSDFContext()
-        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        hit = first_hit(scene, ray, active, self.hide_emitters)
+        si, bsdf, ctx, smooth = hit.si, hit.bsdf, hit.ctx, hit.smooth
+        L = hit.emitted
         n_e, n_b = self.emitter_samples, self.bsdf_samples
         frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
 
@@ -107,36 +99,22 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
         for _ in range(n_e):
             L += env.emitter_nee(scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b) / n_e
 
+        # The emitter strategy of a BSDF-sampled direction: the oracle for the
+        # environment in oracle lanes (W is the lane's: its pdf costs one BSDF
+        # evaluation here), Mitsuba's sampling otherwise.
+        def strategy_pdf(emitter, d, act, mitsuba_pdf):
+            if table is None:
+                return mitsuba_pdf
+            by_oracle = oracle & env.is_environment(emitter)
+            return dr.select(by_oracle, env.warp.pdf(lobe, table, d, act & by_oracle), mitsuba_pdf)
+
         # ----------------------------- BSDF sampling -----------------------------
         for _ in range(n_b):
-            L += self.bsdf_sample(scene, si, bsdf, ctx, sampler.next_1d(active), sampler.next_2d(active),
-                                  active, smooth, env, lobe, table, oracle, frac_e, frac_b) / n_b
+            L += bsdf_sample_of_emitters(scene, hit, sampler.next_1d(hit.active), sampler.next_2d(hit.active),
+                                         strategy_pdf, frac_e, frac_b) / n_b
 
         sees_environment = not self.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []
-
-    def bsdf_sample(self, scene, si, bsdf, ctx, sample_1, sample_2, active, smooth, env, lobe, table,
-                    oracle, frac_e, frac_b):
-        """One BSDF sample of the emitters it hits, MIS-weighted against the
-        emitter strategy of the lane (the oracle for the environment in oracle
-        lanes, Mitsuba's sampling otherwise)."""
-        bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active)
-        act = active & (bs.pdf > 0)
-        d = si.to_world(bs.wo)
-        si_b = scene.ray_intersect(si.spawn_ray(d), act)
-        emitter = si_b.emitter(scene, act)
-        act &= emitter != None  # noqa: E711 (per-lane pointer test)
-        Le = emitter.eval(si_b, act)
-        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        ds = mi.DirectionSample3f(scene, si_b, si)
-        pdf_em = scene.pdf_emitter_direction(si, ds, act & ~delta)
-        if table is not None:
-            # W is the lane's: the oracle's pdf costs one BSDF evaluation here.
-            by_oracle = oracle & env.is_environment(emitter)
-            pdf_em = dr.select(by_oracle, env.warp.pdf(lobe, table, d, act & by_oracle & ~delta), pdf_em)
-        pdf_em = dr.select(delta | ~smooth, 0.0, pdf_em)
-        weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)
-        return dr.select(act, bsdf_weight * Le * weight, 0.0)
 
     def to_string(self):
         return f"OracleDirectIntegrator[{self.options}]"
@@ -171,8 +149,7 @@ class OracleEnvironment:
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""
-        return dr.reinterpret_array(mi.UInt32, emitter) == dr.reinterpret_array(
-            mi.UInt32, mi.EmitterPtr(self.emitter))
+        return is_emitter(emitter, self.emitter)
 
     def oracle_nee(self, scene, u, si, bsdf, ctx, lobe, table, oracle, frac_e, frac_b):
         """One oracle sample of the environment (BSDF value x radiance / pdf),
@@ -194,13 +171,12 @@ class OracleEnvironment:
         when no lane can use it."""
         if not self.needs_emitter_sampling:
             return mi.Spectrum(0.0)
-        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
-        act = smooth & (ds.pdf != 0)
-        if self.warp is not None:
-            act &= ~(oracle & self.is_environment(ds.emitter))
-        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
-        weight = dr.select(ds.delta, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
-        return dr.select(act, bsdf_val * em_weight * weight, 0.0)
+
+        def left_out(emitter):
+            return oracle & self.is_environment(emitter) if self.warp is not None else mi.Bool(False)
+
+        return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
+                                      frac_e, frac_b)
 
 
 class OracleCache(SceneCache):

@@ -5,7 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .environment import SceneCache, mis_weight
+from .environment import SceneCache
+from .estimators import bsdf_sample_of_emitters, first_hit
 from .options import DirectOptions, document_parameters
 
 
@@ -65,19 +66,9 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         env = self.scenes.get(scene)
-        ray = mi.Ray3f(ray)
-        active = mi.Bool(active)
-        L = mi.Spectrum(0.0)
-
-        # ---------------------- Directly visible emitters ----------------------
-        si = scene.ray_intersect(ray, active)
-        if not self.hide_emitters:
-            L += si.emitter(scene, active).eval(si, active)
-        active &= si.is_valid()
-
-        bsdf = si.bsdf(ray)
-        ctx = mi.BSDFContext()
-        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        hit = first_hit(scene, ray, active, self.hide_emitters)
+        si, bsdf, ctx, smooth = hit.si, hit.bsdf, hit.ctx, hit.smooth
+        L = hit.emitted
         n_e, n_b = self.emitter_samples, self.bsdf_samples
         frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
 
@@ -96,42 +87,27 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             L += env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b,
                                  product_only) / n_e
 
+        # The emitter strategy of a BSDF-sampled direction: the product for the
+        # environment in product lanes, Mitsuba's sampling otherwise.
+        def strategy_pdf(emitter, d, act, mitsuba_pdf):
+            return env.hit_pdf(emitter, use_product, env.pdf(lobe, d, act & use_product), mitsuba_pdf)
+
         # ------------- BSDF sampling (a further product sample in product-only lanes) -------------
         for _ in range(n_b):
-            sample_1, sample_2 = sampler.next_1d(active), sampler.next_2d(active)
+            sample_1, sample_2 = sampler.next_1d(hit.active), sampler.next_2d(hit.active)
             if product_only is False:  # no allocation: not even a branch is traced
-                L += self.bsdf_sample(scene, si, bsdf, ctx, sample_1, sample_2, active, smooth, env,
-                                      use_product, lobe, frac_e, frac_b) / n_b
+                L += bsdf_sample_of_emitters(scene, hit, sample_1, sample_2, strategy_pdf, frac_e, frac_b) / n_b
                 continue
             L += dr.if_stmt(
                 args=(sample_1, sample_2), cond=product_only,
                 # A product sample whose share of the lane's samples is frac_b.
                 true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product,
                                                      mi.Bool(True), frac_b, frac_e, diffuse) / n_b,
-                false_fn=lambda u1, u2: self.bsdf_sample(scene, si, bsdf, ctx, u1, u2, active, smooth, env,
-                                                         use_product, lobe, frac_e, frac_b) / n_b)
+                false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
+                                                                frac_e, frac_b) / n_b)
 
         sees_environment = not self.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []
-
-    def bsdf_sample(self, scene, si, bsdf, ctx, sample_1, sample_2, active, smooth, env, use_product,
-                    lobe, frac_e, frac_b):
-        """One BSDF sample of the emitters it hits, MIS-weighted against the
-        emitter strategy of the lane (product or Mitsuba's sampling)."""
-        bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active)
-        act = active & (bs.pdf > 0)
-        d = si.to_world(bs.wo)
-        si_b = scene.ray_intersect(si.spawn_ray(d), act)
-        emitter = si_b.emitter(scene, act)
-        act &= emitter != None  # noqa: E711 (per-lane pointer test)
-        Le = emitter.eval(si_b, act)
-        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        ds = mi.DirectionSample3f(scene, si_b, si)
-        pdf_em = env.hit_pdf(emitter, use_product, env.pdf(lobe, d, act & use_product & ~delta),
-                             scene.pdf_emitter_direction(si, ds, act & ~delta))
-        pdf_em = dr.select(delta | ~smooth, 0.0, pdf_em)
-        weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)
-        return dr.select(act, bsdf_weight * Le * weight, 0.0)
 
     def to_string(self):
         return f"SHDirectIntegrator[{self.options}]"

@@ -5,7 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .environment import SceneCache, mis_weight
+from .environment import SceneCache
+from .estimators import mis_weight
 from .options import PathOptions, document_parameters
 
 

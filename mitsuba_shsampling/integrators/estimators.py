@@ -1,0 +1,104 @@
+"""The pieces of a direct-lighting estimator that every integrator here shares.
+
+``sh_direct`` and ``oracle_direct`` differ only in how they sample the
+environment; the camera hit, Mitsuba's own emitter sampling of everything
+else, the BSDF sample and the MIS weights are the same, and live here once.
+Conventions are Mitsuba's ``direct``: one sample per strategy and sample
+slot, combined with the power heuristic on sample-count fractions.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import drjit as dr
+import mitsuba as mi
+
+
+def mis_weight(pdf_a, pdf_b):
+    """Power heuristic (beta = 2), robust to infinite and zero pdfs."""
+    a2, b2 = dr.square(pdf_a), dr.square(pdf_b)
+    w = a2 / (a2 + b2)
+    return dr.select(dr.isfinite(w), w, 0.0)
+
+
+def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
+    """An interaction that makes ``envmap.eval`` return the radiance arriving from ``d``."""
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.wi = -d
+    return si
+
+
+def is_emitter(emitter: mi.EmitterPtr, which: mi.Emitter) -> mi.Bool:
+    """Per-lane test: is ``emitter`` the emitter ``which``."""
+    return dr.reinterpret_array(mi.UInt32, emitter) == dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(which))
+
+
+class FirstHit(NamedTuple):
+    """The camera ray's shading point."""
+
+    emitted: mi.Spectrum
+    """Radiance of a directly visible emitter (0 with ``hide_emitters``)."""
+    si: mi.SurfaceInteraction3f
+    bsdf: mi.BSDFPtr
+    ctx: mi.BSDFContext
+    active: mi.Bool
+    """Lanes with a surface hit."""
+    smooth: mi.Bool
+    """Lanes whose BSDF has a smooth (non-Dirac) component: emitter sampling runs there."""
+
+
+def first_hit(scene: mi.Scene, ray, active, hide_emitters: bool) -> FirstHit:
+    """Intersect the camera ray and collect what the estimators need, as ``direct`` does."""
+    ray, active = mi.Ray3f(ray), mi.Bool(active)
+    si = scene.ray_intersect(ray, active)
+    emitted = mi.Spectrum(0.0)
+    if not hide_emitters:
+        emitted = si.emitter(scene, active).eval(si, active)
+    active &= si.is_valid()
+    bsdf = si.bsdf(ray)
+    smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    return FirstHit(emitted, si, bsdf, mi.BSDFContext(), active, smooth)
+
+
+def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, left_out, frac_e, frac_b,
+                           weight_one=False) -> mi.Spectrum:
+    """One sample of Mitsuba's emitter sampling, power-heuristic weighted
+    against BSDF sampling (weight 1 for Dirac emitters and ``weight_one``
+    lanes, which run no BSDF sample), in the ``smooth`` lanes.
+
+    ``left_out(emitter) -> mi.Bool``: per lane, the sampled emitter belongs
+    to another strategy of the lane (the environment, when a product or oracle
+    strategy samples it), so this sample contributes nothing there.
+    """
+    ds, em_weight = scene.sample_emitter_direction(si, sample, True, smooth)
+    act = smooth & (ds.pdf != 0) & ~left_out(ds.emitter)
+    bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
+    weight = dr.select(ds.delta | weight_one, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
+    return dr.select(act, bsdf_val * em_weight * weight, 0.0)
+
+
+def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
+                            strategy_pdf: Callable, frac_e, frac_b) -> mi.Spectrum:
+    """One BSDF sample of the emitters it hits, MIS-weighted against the
+    lane's emitter strategy.
+
+    ``strategy_pdf(emitter, d, active, mitsuba_pdf) -> mi.Float``: the pdf with
+    which the lane's emitter strategy draws direction ``d`` towards the hit
+    ``emitter``, given Mitsuba's own emitter-sampling pdf ``mitsuba_pdf``
+    (``active``: lanes that hit an emitter by a non-Dirac BSDF sample).
+    """
+    si, bsdf, active = hit.si, hit.bsdf, hit.active
+    bs, bsdf_weight = bsdf.sample(hit.ctx, si, sample_1, sample_2, active)
+    act = active & (bs.pdf > 0)
+    d = si.to_world(bs.wo)
+    si_b = scene.ray_intersect(si.spawn_ray(d), act)
+    emitter = si_b.emitter(scene, act)
+    act &= emitter != None  # noqa: E711 (per-lane pointer test)
+    Le = emitter.eval(si_b, act)
+    delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    ds = mi.DirectionSample3f(scene, si_b, si)
+    pdf_em = strategy_pdf(emitter, d, act & ~delta, scene.pdf_emitter_direction(si, ds, act & ~delta))
+    pdf_em = dr.select(delta | ~hit.smooth, 0.0, pdf_em)
+    weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)
+    return dr.select(act, bsdf_weight * Le * weight, 0.0)
