@@ -65,3 +65,20 @@ def test_a_failing_benchmark_is_recorded_not_raised(tmp_path, monkeypatch):
     result = run_benchmark("env_pyramid", str(tmp_path), quick=True)
     assert result["error"] == "RuntimeError: no kernel today" and result["json"] is None
     assert "no kernel today" in (tmp_path / "bench_env_pyramid" / "error.txt").read_text()
+
+
+def test_the_interleaved_ab_script_reports_variance_time_and_efficiency_against_the_first(tmp_path):
+    out = tmp_path / "ab.json"
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    scene = os.path.join(REPO, "mitsuba_shsampling", "scenes", "sphere_diffuse.xml")
+    envmap = os.path.join(REPO, "tests", "data", "envmaps", "immenstadter_horn_1k.hdr")
+    proc = subprocess.run([sys.executable, os.path.join(REPO, "scripts", "ab_interleaved.py"), scene,
+                           "--envmap", envmap, "--res", "48", "--spp", "2", "--passes", "4", "--json", str(out),
+                           '{"type": "direct"}', '{"type": "direct", "bsdf_samples": 2, "emitter_samples": 0}'],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    first, second = json.loads(out.read_text())["rows"]
+    assert first["variance_ratio"] == first["time_ratio"] == first["efficiency_ratio"] == 1.0
+    assert second["efficiency_ratio"] == pytest.approx(1.0 / (second["variance_ratio"] * second["time_ratio"]))
+    # BSDF sampling alone rarely finds the map's sun: far noisier than 1 + 1 MIS.
+    assert second["pixel_variance"] > first["pixel_variance"]

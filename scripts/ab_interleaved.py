@@ -1,0 +1,74 @@
+"""A/B of integrator settings on one scene, timed interleaved, in one process.
+
+Pass k of every integrator runs before pass k + 1 of any (same seeds for all),
+so a slow spell of the machine falls on all of them alike. Prints, against the
+first integrator: the per-pixel luminance variance across passes (the
+expected squared error of one pass, tails included), the median pass time and
+the efficiency 1 / (variance x time); ``--json`` writes the same.
+
+    python scripts/ab_interleaved.py SCENE.xml --envmap MAP --res 192 --spp 4 --passes 16 \\
+        '{"type": "direct"}' '{"type": "sh_direct"}' '{"type": "sh_direct", "product_allocation": true}'
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+import mitsuba_shsampling  # noqa: F401  (points Dr.Jit at a usable libLLVM first)
+import mitsuba as mi
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scene")
+    parser.add_argument("integrators", nargs="+", help="integrator dicts as JSON")
+    parser.add_argument("--envmap", default=None)
+    parser.add_argument("--res", type=int, default=192)
+    parser.add_argument("--spp", type=int, default=4)
+    parser.add_argument("--passes", type=int, default=16)
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+
+    mi.set_variant("llvm_ad_rgb")
+    mitsuba_shsampling.register()
+    from mitsuba_shsampling.scenes import load_scene
+
+    scene = load_scene(args.scene, envmap=args.envmap, res=args.res)
+    integrators = {text: mi.load_dict(json.loads(text)) for text in args.integrators}
+    for integrator in integrators.values():  # compile outside the timed passes
+        np.array(mi.render(scene, integrator=integrator, spp=args.spp, seed=10_000))
+    times = {name: [] for name in integrators}
+    images = {name: [] for name in integrators}
+    for k in range(args.passes):
+        for name, integrator in integrators.items():
+            start = time.perf_counter()
+            image = np.array(mi.render(scene, integrator=integrator, spp=args.spp, seed=k))
+            times[name].append(time.perf_counter() - start)
+            images[name].append(image[..., :3] @ LUMINANCE)
+
+    rows = []
+    for name in integrators:
+        variance = float(np.stack(images[name]).var(axis=0, ddof=1).mean())
+        rows.append({"integrator": json.loads(name), "pixel_variance": variance,
+                     "time_s": float(np.median(times[name]))})
+    base = rows[0]
+    print(f"{'integrator':72s} {'var':>7s} {'time':>7s} {'eff':>7s}   (relative to the first)")
+    for name, row in zip(integrators, rows):
+        row["variance_ratio"] = row["pixel_variance"] / base["pixel_variance"]
+        row["time_ratio"] = row["time_s"] / base["time_s"]
+        row["efficiency_ratio"] = 1.0 / (row["variance_ratio"] * row["time_ratio"])
+        print(f"{name:72s} {row['variance_ratio']:7.3f} {row['time_ratio']:7.3f} {row['efficiency_ratio']:7.3f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"scene": args.scene, "envmap": args.envmap, "res": args.res, "spp": args.spp,
+                       "passes": args.passes, "rows": rows}, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
