@@ -17,7 +17,7 @@ import mitsuba as mi
 
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
-from ..lobes.scene_lobes import DIFFUSE_BANDS, registry_id
+from ..lobes.scene_lobes import registry_id
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from .estimators import environment_ray_target, is_emitter, mis_weight, mitsuba_emitter_sample
@@ -97,33 +97,21 @@ class ProductEnvironment:
         no_delta = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
         return use_product & no_delta & self.lobes.represents_exactly(si, use_product)
 
-    def is_diffuse(self, si, product_only: mi.Bool):
-        """Per lane, among ``product_only`` lanes: the lobe is diffuse
-        (:meth:`SceneLobes.is_diffuse`); False where no product runs."""
-        if not self.active:
-            return False
-        return product_only & self.lobes.is_diffuse(si, product_only)
-
-    def sample_product(self, lobe, u: mi.Point2f, plain, diffuse=False):
+    def sample_product(self, lobe, u: mi.Point2f, plain):
         """(direction, exact pdf) of one product sample: from :attr:`warp_plain`
-        in ``plain`` lanes, from :attr:`warp` in the others; ``diffuse`` lanes
-        (glossy part minor, a subset of ``plain``) walk with the
-        :data:`~mitsuba_shsampling.lobes.scene_lobes.DIFFUSE_BANDS` bands that
-        describe them, at a fraction of the cost. Symbolic branches, so a SIMD
-        packet runs only the walk its lanes need."""
-        if plain is False:
+        in ``plain`` lanes, from :attr:`warp` in the others (a symbolic branch,
+        so a SIMD packet runs only the walk its lanes need).
+
+        Diffuse lanes once walked with only the 3 bands that describe them, in
+        a further branch; measured (``scripts/ab_interleaved.py``, 192 px,
+        ``product_allocation`` on) it cost more than it saved: pass time 2.00x
+        -> 1.84x ``direct``'s on the GGX 0.1 sphere under the studio map, 2.15x ->
+        2.01x on GGX 0.3 and 1.69x -> 1.67x on the diffuse sphere without it,
+        the variance unchanged (the larger kernel is what costs)."""
+        if plain is False or self.warp_plain is self.warp:
             return self.warp.sample(lobe.coeffs, u, lobe.proxy)
-
-        def plain_sample(c, v):
-            if diffuse is False or len(c.coeffs) <= DIFFUSE_BANDS**2:
-                return self.warp_plain.sample(c.coeffs, v, c.proxy)
-            return dr.if_stmt(args=(c, v), cond=diffuse,
-                              true_fn=lambda c3, w: self.warp_plain.sample(c3.coeffs[:DIFFUSE_BANDS**2], w, c3.proxy),
-                              false_fn=lambda c3, w: self.warp_plain.sample(c3.coeffs, w, c3.proxy))
-
-        if self.warp_plain is self.warp:
-            return plain_sample(lobe, u)
-        return dr.if_stmt(args=(lobe, u), cond=plain, true_fn=plain_sample,
+        return dr.if_stmt(args=(lobe, u), cond=plain,
+                          true_fn=lambda c, v: self.warp_plain.sample(c.coeffs, v, c.proxy),
                           false_fn=lambda c, v: self.warp.sample(c.coeffs, v, c.proxy))
 
     def pdf(self, lobe, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
@@ -143,8 +131,7 @@ class ProductEnvironment:
             return emitter_pdf
         return dr.select(use_product & self.is_environment(emitter), product_pdf, emitter_pdf)
 
-    def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, product_only,
-                    frac_e, frac_b, diffuse=False):
+    def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, product_only, frac_e, frac_b):
         """One product sample of the environment (BSDF value x radiance / pdf).
 
         In ``product_only`` lanes (:meth:`product_carries_all`) it is one of
@@ -155,7 +142,7 @@ class ProductEnvironment:
             return mi.Spectrum(0.0)
         # Packets without a product lane (sky, delta BSDFs, unsupported lobes) skip the walk.
         d, pdf_p = dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
-                              true_fn=lambda c, v: self.sample_product(c, v, product_only, diffuse),
+                              true_fn=lambda c, v: self.sample_product(c, v, product_only),
                               false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
         act = use_product & (pdf_p > 0)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)

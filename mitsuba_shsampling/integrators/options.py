@@ -186,11 +186,12 @@ class DirectOptions(ProductOptions):
         "part (diffuse and rough lobes). Those lanes draw ``emitter_samples + bsdf_samples`` "
         "product samples from the uncompensated map, equally weighted, and no BSDF sample; the "
         "others combine product and BSDF samples under MIS. Measured (192 px, 4 spp, 16 passes "
-        "timed interleaved, efficiency against this integrator without it): +43-49 % on diffuse "
-        "and GGX 0.3 spheres (immenstadter_horn, sun-and-sky), +21 % GGX 0.3 and +9 % principled "
-        "(forest_slope), +3 % roughplastic (potsdamer_platz), but -18 to -24 % on GGX 0.1 spheres "
-        "(studio, the default scene): their error is the sphere's, which keeps MIS, while the "
-        "whole pass takes 23-33 % longer."))
+        "timed interleaved, ``scripts/ab_interleaved.py``, efficiency against this integrator "
+        "without it): +45-53 % on diffuse spheres (immenstadter_horn, sun-and-sky) and GGX 0.3 "
+        "(immenstadter_horn), +24 % GGX 0.3 and +17 % principled (forest_slope), +9 % "
+        "roughplastic (potsdamer_platz), but -8 % and -20 % on GGX 0.1 spheres (studio, the "
+        "default scene): their error is the sphere's, which keeps MIS, while the pass takes "
+        "10-25 % longer."))
 
     def _check_ranges(self) -> None:
         super()._check_ranges()

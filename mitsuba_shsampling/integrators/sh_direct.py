@@ -77,12 +77,11 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # sample (drawn from the uncompensated map); the others combine one
         # strategy per sample type under MIS.
         product_only = env.product_carries_all(si, bsdf, use_product) if self.allocation and n_b > 0 else False
-        diffuse = env.is_diffuse(si, product_only) if product_only is not False else False
 
         # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
         for _ in range(n_e):
             L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe,
-                                 use_product, product_only, frac_e, frac_b, diffuse) / n_e
+                                 use_product, product_only, frac_e, frac_b) / n_e
         for _ in range(n_e):
             L += env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b,
                                  product_only) / n_e
@@ -102,7 +101,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 args=(sample_1, sample_2), cond=product_only,
                 # A product sample whose share of the lane's samples is frac_b.
                 true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product,
-                                                     mi.Bool(True), frac_b, frac_e, diffuse) / n_b,
+                                                     mi.Bool(True), frac_b, frac_e) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b) / n_b)
 

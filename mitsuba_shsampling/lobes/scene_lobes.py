@@ -277,13 +277,6 @@ class SceneLobes:
         w_d, w_g, exponent, valid = self._fitted(si, active)
         return valid & ((exponent <= self.max_exponent) | self._glossy_is_minor(w_d, w_g))
 
-    def is_diffuse(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Bool:
-        """Per lane: the glossy lobe carries under :data:`MIN_GLOSSY_FRACTION`
-        of the energy, so the first :data:`DIFFUSE_BANDS` bands of the proxy
-        (its clamped cosine) describe it."""
-        w_d, w_g, _, valid = self._fitted(si, active)
-        return valid & self._glossy_is_minor(w_d, w_g)
-
     @staticmethod
     def _glossy_is_minor(w_d, w_g) -> mi.Bool:
         return w_g <= MIN_GLOSSY_FRACTION * (w_d + w_g)
