@@ -7,7 +7,8 @@ has them): Mitsuba 3 XML files, a shared stage in ``include/`` and the maps in
 ================== =========================================================
 ``envmap``         lat-long map file of the ``envmap`` emitter
 ``mis_compensation`` ``true``/``false``: the envmap's MIS compensation
-``res``            image width and height (pixels)
+``res``            image width (pixels); also the height, unless the scene declares
+                   ``height``, which then follows ``res`` at the scene's default aspect
 ``spp``            samples per pixel of the sensor's sampler
 ``sampler``        sampler plugin (``independent``, ``stratified``, ...)
 ``integrator``     integrator plugin used by ``mi.load_file`` alone
@@ -92,7 +93,8 @@ def load_scene(path: str, envmap: str | None = None, mis_compensation: bool = Fa
     :param envmap: lat-long map replacing the scene's ``$envmap`` (None keeps its default).
     :param mis_compensation: value of ``$mis_compensation`` (ignored if the scene has no envmap
         parameter; requesting True for such a scene raises :class:`SceneError`).
-    :param res: image width and height in pixels (``$res``), None keeps the default.
+    :param res: image width in pixels (``$res``; the height too, or ``$height`` at the scene's
+        default aspect where the scene declares it), None keeps the default.
     :param spp: samples per pixel (``$spp``), None keeps the default.
     :param sampler: sampler plugin name (``$sampler``), None keeps the default.
     :param params: further ``$name`` parameters, passed as strings.
@@ -111,6 +113,8 @@ def load_scene(path: str, envmap: str | None = None, mis_compensation: bool = Fa
     for name, value in (("res", res), ("spp", spp), ("sampler", sampler)):
         if value is not None:
             wanted[name] = value
+    if res is not None and "height" in declared and "height" not in wanted:
+        wanted["height"] = max(1, round(res * int(declared["height"]) / int(declared["res"])))
     undeclared = sorted(set(wanted) - set(declared))
     if undeclared:
         raise SceneError(f"{path} does not declare the parameter(s) {', '.join(undeclared)} "
