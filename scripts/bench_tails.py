@@ -48,9 +48,9 @@ def main() -> None:
 
     mi.set_variant("llvm_ad_rgb")
     mitsuba_shsampling.register()
-    from mitsuba_shsampling.scenes import default_scene_path, load_scene
+    from mitsuba_shsampling.scenes import load_scene, unit_scene_path
 
-    path = args.scene or default_scene_path()
+    path = args.scene or unit_scene_path()
     extra: dict[str, dict] = {}
     for item in args.set:
         name, assignment = item.split(":", 1)

@@ -286,7 +286,7 @@ def material_studio() -> str:
             <float name="alpha" value="0.05"/>
             <string name="material" value="Au"/>
         </bsdf>""")
-    body += sphere("chrome_ball", (2.35, 0.3, 0.9), 0.3, """<bsdf type="roughconductor">
+    body += sphere("chrome_ball", (1.05, 0.3, -1.75), 0.3, """<bsdf type="roughconductor">
             <string name="distribution" value="ggx"/>
             <float name="alpha" value="0.3"/>
             <string name="material" value="Cr"/>

@@ -23,7 +23,7 @@ mi.set_variant("llvm_ad_rgb")
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
-from mitsuba_shsampling.scenes import default_scene_path, load_scene  # noqa: E402
+from mitsuba_shsampling.scenes import load_scene, unit_scene_path  # noqa: E402
 
 from test_integrators import assert_unbiased, make_scene, MATERIALS  # noqa: E402
 
@@ -238,16 +238,16 @@ def test_product_only_sampling_is_unbiased_on_a_hard_sun_map():
     assert_unbiased(scene, sh, mi.load_dict({"type": "path", "max_depth": 2}))
 
 
-def test_product_only_sampling_is_unbiased_on_the_default_scene():
+def test_product_only_sampling_is_unbiased_on_the_glossy_unit_scene():
     with pytest.warns(UserWarning, match="mis_compensation' is switched off"):
         sh = mi.load_dict({"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0})
-    scene = load_scene(default_scene_path(), res=24)
+    scene = load_scene(unit_scene_path(), res=24)
     assert_unbiased(scene, sh, mi.load_dict({"type": "path", "max_depth": 2}))
 
 
 def test_brightest_pixel_over_ten_million_samples_is_no_firefly():
     """Same seeds, 1024 x 1024 x 10 spp = 10.5 M camera samples per method."""
-    scene = load_scene(default_scene_path(), res=1024)
+    scene = load_scene(unit_scene_path(), res=1024)
     brightest = {}
     for name in ("direct", "sh_direct"):
         image = mi.render(scene, integrator=mi.load_dict({"type": name}), spp=10, seed=7).numpy()

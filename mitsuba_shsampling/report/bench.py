@@ -90,12 +90,12 @@ def error_time_sweep(out: str, scene_path: str, settings: dict, max_spp: int, re
 
 def run_bench(out: str, quick: bool, res: int, sampler: str, max_spp: int, ref_spp: int,
               cache_dir: str, progress: bool = True) -> dict:
-    """Run every benchmark, then the sweep on the default scene; writes ``bench.json``."""
+    """Run every benchmark, then the sweep on the unit scene (a glossy sphere); writes ``bench.json``."""
     os.makedirs(out, exist_ok=True)
     runs = [run_benchmark(name, out, quick) for name in tqdm(benchmarks.NAMES, desc="benchmarks",
                                                               disable=not progress, file=sys.stderr)]
     settings = {"res": res, "sampler": sampler, "envmap": None, "max_depth": 2}
-    sweep = error_time_sweep(out, builtin.default_scene_path(), settings, max_spp, ref_spp,
+    sweep = error_time_sweep(out, builtin.unit_scene_path(), settings, max_spp, ref_spp,
                              cache_dir, progress)
     summary = {"benchmarks": runs, "sweep": sweep}
     with open(os.path.join(out, "bench.json"), "w") as f:

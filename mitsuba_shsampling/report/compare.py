@@ -30,7 +30,7 @@ import mitsuba as mi
 import math
 
 from ..scenes import SceneError, scene_envmap
-from . import DEFAULT_CACHE_DIR, html, images, metrics, verdict
+from . import DEFAULT_CACHE_DIR, html, images, materials, metrics, verdict
 from .methods import BASELINE, DIRECT, METHODS, MULTI_BOUNCE_BASELINE, Method, available_methods
 from .figures import sampler_demo_figures
 from .plots import convergence_figure
@@ -44,11 +44,11 @@ class CompareSettings:
     """Settings of one ``compare`` run (the CLI options)."""
 
     out: str = "report"
-    res: int = 128
+    res: int = 240
     spp: int = 8
     passes: int = 32
     ref_spp: int = 1024
-    samplers: tuple[str, ...] = ("independent", "multijitter")
+    samplers: tuple[str, ...] = ("independent",)
     methods: tuple[str, ...] | None = None
     envmap: str | None = None
     max_depth: int = 2
@@ -352,7 +352,9 @@ class SceneComparison:
         maps = self.write_maps(folder, methods, equal_spp, refs)
         # What actually rendered, read back from the sensor the passes used.
         sensor = next(iter(renderers.values())).sensor if renderers else None
+        breakdown = self.material_breakdown(renderers, methods, equal_spp, equal_time, refs)
         run = {"sampler": sampler, "methods": results, "maps": maps, "convergence_plot": None,
+               "materials": breakdown,
                "sampler_plugin": sensor.sampler().class_name() if sensor else None,
                "film_size": [int(v) for v in sensor.film().size()] if sensor else None}
         if max_spp > 0:
@@ -363,6 +365,25 @@ class SceneComparison:
                 f.write(plot)
             run["convergence_plot"] = self.rel(plot_path)
         return run
+
+    @staticmethod
+    def material_breakdown(renderers: dict[str, MethodRenderer], methods: list[Method],
+                           equal_spp: dict[str, PassSet], equal_time: dict[str, PassSet],
+                           refs: dict[str, Reference]) -> dict[str, list[materials.MaterialEntry]]:
+        """Per family, the per-material variance ratios and error shares (:mod:`.materials`)."""
+        if not methods:
+            return {}
+        renderer = renderers[methods[0].name]
+        ids, labels = materials.material_map(renderer.scene, renderer.sensor)
+        out = {}
+        for family in sorted({m.family for m in methods}):
+            names = [m.name for m in methods if m.family == family and not m.oracle]
+            project = [n for n in names if n in PROJECT_METHODS]
+            out[family] = materials.breakdown(
+                ids, labels, {n: equal_spp[n].images for n in names},
+                {n: equal_time[n].images for n in names if n in equal_time},
+                refs[family].image, project, [n for n in names if n not in PROJECT_METHODS])
+        return out
 
     @staticmethod
     def baseline_name(method: Method, results: dict[str, MethodResult]) -> str:

@@ -159,6 +159,31 @@ def _metrics_table(run: dict) -> str:
     return "<table>" + "".join(rows) + "</table>"
 
 
+def _materials_table(rows: list[dict]) -> str:
+    """Per-material variance ratios against the best Mitsuba strategy there, and error shares."""
+    if not rows:
+        return ""
+    project = list(rows[0]["variance_ratio"])
+    head = "".join(f"<th>{_e(n)}: variance / best Mitsuba, equal samples</th><th>{_e(n)}: equal time</th>"
+                   f"<th>{_e(n)}: share of its error</th>" for n in project)
+    out = [f"<table><tr><th>material</th><th>plugin</th><th>pixels</th><th>best Mitsuba strategy there "
+           f"(equal samples / equal time)</th><th>its share of its error</th>{head}</tr>"]
+    for row in rows:
+        best = row["best_mitsuba"]
+        cells = []
+        for n in project:
+            for kind in ("equal_spp", "equal_time"):
+                ratio = row["variance_ratio"][n].get(kind)
+                style = ' class="bad"' if ratio is not None and ratio > 1 else ""
+                cells.append(f"<td{style}>{_num(ratio, 3)}</td>")
+            cells.append(f"<td>{_num(row['error_share'].get(n), 2)}</td>")
+        out.append(f'<tr><td class="name">{_e(row["name"])}</td><td class="name">{_e(row["plugin"])}</td>'
+                   f'<td>{100 * row["pixel_share"]:.1f} %</td>'
+                   f'<td class="name">{_e(best.get("equal_spp"))} / {_e(best.get("equal_time"))}</td>'
+                   f'<td>{_num(row["error_share"].get(best.get("equal_spp")), 2)}</td>{"".join(cells)}</tr>')
+    return "".join(out) + "</table>"
+
+
 def _scene_section(page: _Page, scene: dict) -> None:
     page.add(f"<h2>Scene {_e(scene['scene'])}</h2><p>{_e(scene['path'])}</p>")
     for note in scene["notes"]:
@@ -179,6 +204,13 @@ def _scene_section(page: _Page, scene: dict) -> None:
                     f"{run['film_size'][0]} x {run['film_size'][1]})" if run.get("sampler_plugin") else "")
         page.add(f"<h3>{_e(scene['scene'])}: {_e(run['sampler'])} sampler{rendered}</h3>")
         page.add(_metrics_table(run))
+        for family, rows in (run.get("materials") or {}).items():
+            page.add(f"<h4>Per material ({_e(family)} family): where each method wins and loses</h4>"
+                     "<p>Each pixel counts for the material its centre sees. A variance ratio below 1 "
+                     "beats every Mitsuba strategy on that material's pixels (the best one there is "
+                     "named); the error share is the part of the method's squared error, summed over "
+                     "the image, that falls on the material.</p>")
+            page.add(_materials_table(rows))
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
             figs = []
             for name, entry in run["methods"].items():

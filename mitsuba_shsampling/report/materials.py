@@ -1,0 +1,138 @@
+"""Per-material breakdown: where in the image a method wins and where it loses.
+
+A realistic image is mostly ground, walls and diffuse objects; one number for the
+whole image hides that a method can win on the glossy object and lose on the
+ground. Each pixel is given the material (BSDF instance) seen through its centre,
+by one camera ray per pixel centre (the box-filtered AOV of the BSDF index, without
+the film's reconstruction filter, so that every pixel has exactly one material).
+Pixels whose centre sees no surface are the ``background``.
+
+For each material and method the breakdown gives, from the K passes of the
+comparison:
+
+- the per-pixel variance summed over the material's pixels, as a ratio to the best
+  Mitsuba strategy *on that material* (so a ratio below 1 means the method beats
+  every Mitsuba strategy there), at equal samples and at equal time;
+- the share of the method's image error (squared error against the reference,
+  summed over pixels) that the material carries.
+
+The film filter spreads a pixel's samples over its neighbours, so a thin object's
+edge pixels mix materials; the per-pixel-centre assignment counts them where their
+centre falls.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+import drjit as dr
+import mitsuba as mi
+
+from . import metrics
+
+BACKGROUND = "background"
+
+
+@dataclasses.dataclass
+class MaterialEntry:
+    """One material's row of the breakdown.
+
+    :param name: the BSDF's id in the scene, or the ids of the shapes that use it.
+    :param plugin: Mitsuba's class name of the BSDF (``RoughConductor``, ``BumpMap``, ...).
+    :param pixel_share: fraction of the image's pixels whose centre sees it.
+    :param variance_ratio: method -> {"equal_spp": r, "equal_time": r}: the method's summed
+        per-pixel variance on these pixels over the best Mitsuba strategy's.
+    :param best_mitsuba: {"equal_spp": name, "equal_time": name} of that strategy.
+    :param error_share: method -> share of the method's equal-sample image error on these pixels.
+    """
+
+    name: str
+    plugin: str
+    pixel_share: float
+    variance_ratio: dict[str, dict[str, float | None]]
+    best_mitsuba: dict[str, str | None]
+    error_share: dict[str, float | None]
+
+
+def _plugin_name(bsdf: mi.BSDF) -> str:
+    text = str(bsdf)
+    return "Principled" if text.startswith("Principled") else text.split("[", 1)[0].strip()
+
+
+def material_map(scene: mi.Scene, sensor: mi.Sensor) -> tuple[np.ndarray, list[tuple[str, str]]]:
+    """Material index of every pixel (H, W), -1 for the background, and (name, plugin) per index.
+
+    One ray through each pixel centre of ``sensor``'s film (its crop window included); shapes that
+    share a BSDF instance share an index.
+    """
+    film = sensor.film()
+    width, height = (int(v) for v in film.crop_size())
+    offset = np.array(film.crop_offset(), dtype=np.float64)
+    size = np.array(film.size(), dtype=np.float64)
+    idx = np.arange(width * height)
+    pos = mi.Point2f(((idx % width) + 0.5 + offset[0]) / size[0], ((idx // width) + 0.5 + offset[1]) / size[1])
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    hit_ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.int64)
+    valid = np.array(si.is_valid())
+
+    # Registry id of each shape -> index of its BSDF instance (shared BSDFs share an index).
+    bsdfs: list[mi.BSDF] = []
+    users: list[list[str]] = []
+    shape_to_material: dict[int, int] = {}
+    for number, shape in enumerate(scene.shapes()):
+        bsdf = shape.bsdf()
+        index = next((i for i, b in enumerate(bsdfs) if b is bsdf), None)
+        if index is None:
+            index = len(bsdfs)
+            bsdfs.append(bsdf)
+            users.append([])
+        users[index].append(shape.id() or f"shape{number}")
+        registry = int(np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape)))[0])
+        shape_to_material[registry] = index
+    labels = [(bsdf.id() or "+".join(names), _plugin_name(bsdf)) for bsdf, names in zip(bsdfs, users)]
+
+    lookup = np.vectorize(lambda r: shape_to_material.get(int(r), -1), otypes=[np.int64])
+    ids = np.where(valid, lookup(hit_ids) if hit_ids.size else hit_ids, -1)
+    return ids.reshape(height, width), labels
+
+
+def breakdown(ids: np.ndarray, labels: list[tuple[str, str]], equal_spp: dict[str, np.ndarray],
+              equal_time: dict[str, np.ndarray], reference: np.ndarray, project: list[str],
+              mitsuba: list[str]) -> list[MaterialEntry]:
+    """The per-material rows (largest pixel share first) for the methods of one run.
+
+    :param ids: (H, W) material index per pixel (:func:`material_map`).
+    :param equal_spp, equal_time: method -> its (K, H, W, C) passes; methods missing from
+        ``equal_time`` get None there.
+    :param reference: (H, W, C) reference image of the methods' family.
+    :param project, mitsuba: names of the project's and of Mitsuba's methods among them.
+    """
+    variance = {kind: {n: metrics.pixel_variance(p) for n, p in passes.items()}
+                for kind, passes in (("equal_spp", equal_spp), ("equal_time", equal_time))}
+    squared_error = {n: np.nanmean(np.where(np.isfinite(p), (p - reference[None]) ** 2, np.nan), axis=(0, 3))
+                     for n, p in equal_spp.items()}
+    total_error = {n: float(np.nansum(e)) for n, e in squared_error.items()}
+
+    entries = []
+    names = [(BACKGROUND, "(environment)")] + labels
+    for index, (name, plugin) in zip(range(-1, len(labels)), names):
+        mask = ids == index
+        if not mask.any():
+            continue
+        ratios: dict[str, dict[str, float | None]] = {n: {} for n in project}
+        best: dict[str, str | None] = {}
+        for kind, maps in variance.items():
+            sums = {n: float(np.nansum(v[mask])) for n, v in maps.items()}
+            candidates = [n for n in mitsuba if n in sums]
+            best[kind] = min(candidates, key=lambda n: sums[n]) if candidates else None
+            for n in project:
+                denominator = sums.get(best[kind], 0.0) if best[kind] else 0.0
+                ratios[n][kind] = sums[n] / denominator if n in sums and denominator > 0 else None
+        shares = {n: (float(np.nansum(e[mask])) / total_error[n] if total_error[n] > 0 else None)
+                  for n, e in squared_error.items()}
+        entries.append(MaterialEntry(name=name, plugin=plugin, pixel_share=float(mask.mean()),
+                                     variance_ratio=ratios, best_mitsuba=best, error_share=shares))
+    return sorted(entries, key=lambda e: -e.pixel_share)

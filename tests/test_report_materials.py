@@ -1,0 +1,82 @@
+"""The report's per-material breakdown: which material each pixel shows, and where a method wins or loses."""
+
+import numpy as np
+import pytest
+
+import mitsuba_shsampling  # noqa: F401  (LLVM backend check)
+import mitsuba as mi
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling.report import materials  # noqa: E402
+
+
+def two_sphere_scene() -> mi.Scene:
+    """A gold sphere on the left and a diffuse sphere on the right, sharing nothing; sky behind."""
+    shared = mi.load_dict({"type": "diffuse", "id": "shared_white"})
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 8], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 40, "height": 20, "rfilter": {"type": "gaussian"}}},
+        "left": {"type": "sphere", "center": [-1.5, 0, 0], "radius": 1.0,
+                 "bsdf": {"type": "roughconductor", "id": "gold"}},
+        "right": {"type": "sphere", "center": [1.5, 0, 0], "radius": 1.0, "bsdf": shared},
+        "tiny": {"type": "sphere", "center": [0, 1.1, 0], "radius": 0.3, "bsdf": shared},
+        "sky": {"type": "constant"},
+    })
+
+
+def test_every_pixel_centre_is_labelled_with_the_bsdf_it_sees():
+    scene = two_sphere_scene()
+    ids, labels = materials.material_map(scene, scene.sensors()[0])
+    assert ids.shape == (20, 40)
+    names = [name for name, _ in labels]
+    # Shapes sharing a BSDF instance share one material.
+    assert len(labels) == 2
+    gold = names.index("gold")
+    white = 1 - gold
+    assert ids[10, 10] == gold and ids[10, 30] == white
+    assert ids[2, 20] == white  # the tiny sphere above, same BSDF instance
+    assert ids[0, 0] == -1 and ids[19, 39] == -1  # corners see the sky
+    assert dict(labels)["gold"] == "RoughConductor"
+
+
+def synthetic_passes(rng, scale: np.ndarray, passes: int = 400) -> np.ndarray:
+    """K passes of a (H, W, 3) image of mean 1 whose per-pixel noise has standard deviation ``scale``."""
+    return 1.0 + scale[None, :, :, None] * rng.standard_normal((passes,) + scale.shape + (3,))
+
+
+def test_variance_ratio_compares_with_the_best_mitsuba_strategy_on_each_material():
+    rng = np.random.default_rng(0)
+    ids = np.zeros((4, 8), dtype=np.int64)
+    ids[:, 4:] = 1
+    left, right = ids == 0, ids == 1
+    # direct is noisy on the left, env_only on the right; the project method halves the
+    # variance of the best one on the left and doubles it on the right.
+    sd = {"direct": np.where(left, 2.0, 1.0), "env_only": np.where(left, 1.0, 2.0),
+          "sh_direct": np.where(left, np.sqrt(0.5), np.sqrt(2.0))}
+    passes = {n: synthetic_passes(rng, s) for n, s in sd.items()}
+    rows = materials.breakdown(ids, [("glossy", "RoughConductor"), ("ground", "SmoothDiffuse")],
+                               passes, passes, np.ones((4, 8, 3)), ["sh_direct"], ["direct", "env_only"])
+    by_name = {r.name: r for r in rows}
+    assert by_name["glossy"].best_mitsuba == {"equal_spp": "env_only", "equal_time": "env_only"}
+    assert by_name["ground"].best_mitsuba["equal_spp"] == "direct"
+    assert by_name["glossy"].variance_ratio["sh_direct"]["equal_spp"] == pytest.approx(0.5, rel=0.1)
+    assert by_name["ground"].variance_ratio["sh_direct"]["equal_time"] == pytest.approx(2.0, rel=0.1)
+    assert by_name["glossy"].pixel_share == pytest.approx(0.5)
+    # sh_direct's squared error: 0.5 on 16 pixels and 2 on 16 pixels, so a fifth on the glossy part.
+    assert by_name["glossy"].error_share["sh_direct"] == pytest.approx(0.2, rel=0.1)
+    for name in passes:
+        assert sum(r.error_share[name] for r in rows) == pytest.approx(1.0)
+
+
+def test_materials_no_pixel_shows_are_left_out_and_the_background_is_a_row():
+    ids = np.full((2, 2), -1, dtype=np.int64)
+    ids[0, 0] = 1
+    passes = {n: np.random.default_rng(1).random((3, 2, 2, 3)) for n in ("direct", "sh_direct")}
+    rows = materials.breakdown(ids, [("unseen", "Diffuse"), ("seen", "Diffuse")], passes, {},
+                               np.full((2, 2, 3), 0.5), ["sh_direct"], ["direct"])
+    assert [r.name for r in rows] == [materials.BACKGROUND, "seen"]
+    # No equal-time passes: no equal-time ratio, rather than a made-up one.
+    assert rows[0].variance_ratio["sh_direct"]["equal_time"] is None
