@@ -31,7 +31,7 @@ import math
 
 from ..scenes import SceneError, scene_envmap
 from . import DEFAULT_CACHE_DIR, html, images, metrics, verdict
-from .methods import BASELINE, DIRECT, METHODS, MULTI_BOUNCE_BASELINE, Method, available_methods
+from .methods import BASELINE, DIRECT, MULTI_BOUNCE_BASELINE, Method, available_methods
 from .figures import sampler_demo_figures
 from .plots import convergence_figure
 from .rendering import (SEED_CONVERGENCE, SEED_EQUAL_TIME, MethodRenderer, PassSet, Reference,
@@ -465,12 +465,6 @@ def serialise(value):
     return value
 
 
-#: Names of the project's methods (those needing a plugin of this package), for the verdict.
-PROJECT_METHODS = frozenset(m.name for m in METHODS if m.plugin is not None and not m.oracle)
-#: Reference rows, which the verdict leaves out.
-ORACLE_METHODS = frozenset(m.name for m in METHODS if m.oracle)
-
-
 def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
     """Run the comparison of every scene, write the report folder, return the report (JSON form)."""
     os.makedirs(settings.out, exist_ok=True)
@@ -486,7 +480,7 @@ def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
             report["scenes"].append(SceneComparison(path, settings, bar).run())
     report["total_time_s"] = time.time() - started
     report = serialise(report)
-    report["verdict"] = serialise(verdict.verdict(report, PROJECT_METHODS, ORACLE_METHODS))
+    report["verdict"] = serialise(verdict.verdict(report))
     with open(os.path.join(settings.out, "report.json"), "w") as f:
         json.dump(report, f, indent=2, allow_nan=False)
     write_csv(os.path.join(settings.out, "metrics.csv"), report)
