@@ -104,12 +104,9 @@ class ProductEnvironment:
         in ``plain`` lanes, from :attr:`warp` in the others (a symbolic branch,
         so a SIMD packet runs only the walk its lanes need).
 
-        Diffuse lanes once walked with only the 3 bands that describe them, in
-        a further branch; measured (``scripts/ab_interleaved.py``, 192 px,
-        ``product_allocation`` on) it cost more than it saved: pass time 2.00x
-        -> 1.84x ``direct``'s on the GGX 0.1 sphere under the studio map, 2.15x ->
-        2.01x on GGX 0.3 and 1.69x -> 1.67x on the diffuse sphere without it,
-        the variance unchanged (the larger kernel is what costs)."""
+        Diffuse lanes walk all the bands: a further branch with only the 3
+        that describe them cost more (a larger kernel) than it saved
+        (docs/MEASUREMENTS.md, "Product allocation")."""
         if plain is False or self.warp_plain is self.warp:
             return self.warp.sample(lobe.coeffs, u, lobe.proxy)
         return dr.if_stmt(args=(lobe, u), cond=plain,

@@ -43,7 +43,7 @@ MIN_BANDS = DIFFUSE_BANDS
 # sh_depth 2 with the closed-form proxy down to level 6 (DEFAULT_PROXY_DEPTH):
 # at about the kernel operations of sh_depth 3 without the proxy, less
 # per-pixel variance on every sphere and map measured (docs/MEASUREMENTS.md,
-# "Band count and SH depth"; docs/MATH.md, "Closed-form proxy levels").
+# "Band count, SH depth and proxy levels").
 DEFAULT_SH_DEPTH = 2
 
 
@@ -182,13 +182,9 @@ class DirectOptions(ProductOptions):
         "closely: the lobe proxy needs no widening to fit ``max_bands`` and the BSDF has no Dirac "
         "part (diffuse and rough lobes). Those lanes draw ``emitter_samples + bsdf_samples`` "
         "product samples from the uncompensated map, equally weighted, and no BSDF sample; the "
-        "others combine product and BSDF samples under MIS. Measured (192 px, 4 spp, 16 passes "
-        "timed interleaved, ``scripts/ab_interleaved.py``, efficiency against this integrator "
-        "without it): +45-53 % on diffuse spheres (immenstadter_horn, sun-and-sky) and GGX 0.3 "
-        "(immenstadter_horn), +24 % GGX 0.3 and +17 % principled (forest_slope), +9 % "
-        "roughplastic (potsdamer_platz), but -8 % and -20 % on GGX 0.1 spheres (studio, the "
-        "default scene): their error is the sphere's, which keeps MIS, while the pass takes "
-        "10-25 % longer."))
+        "others combine product and BSDF samples under MIS. Off by default: it gains on diffuse "
+        "and rough spheres and loses on GGX 0.1 ones, whose error the MIS part keeps while the "
+        "pass takes longer (docs/MEASUREMENTS.md, \"Product allocation\")."))
 
     def _check_ranges(self) -> None:
         super()._check_ranges()

@@ -45,7 +45,7 @@ MAX_BANDS = MAX_ORDER + 1
 """The SH basis goes to l = MAX_ORDER."""
 
 # 8 bands: 10-20 bands cost more time than they saved variance end to end
-# (docs/MEASUREMENTS.md, "Band count and SH depth").
+# (docs/MEASUREMENTS.md, "Band count, SH depth and proxy levels").
 DEFAULT_MAX_BANDS = 8
 """Cap on a scene's band count unless the caller sets one (the plugins' ``max_bands``)."""
 
