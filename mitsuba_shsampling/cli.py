@@ -11,16 +11,11 @@ import os
 import sys
 
 from . import render
+from .command_line import DEFAULT_VARIANT, SAMPLERS, UsageError, set_variant
 from .sweep import command as sweep
 from .report import DEFAULT_CACHE_DIR
 
-DEFAULT_VARIANT = "llvm_ad_rgb"
 COMPARE_RES = 240
-SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler")
-
-
-class UsageError(Exception):
-    """Bad input from the command line: reported in one line, exit code 2."""
 
 
 def _positive(text: str) -> int:
@@ -78,23 +73,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _set_variant(variant: str) -> None:
-    import mitsuba_shsampling  # noqa: F401  (checks the LLVM backend before Mitsuba traces anything)
-    import mitsuba as mi
-    from ._backend import unsupported_variant_reason
-
-    reason = unsupported_variant_reason(variant)
-    if reason is not None:
-        raise UsageError(reason)
-    if variant not in mi.variants():
-        raise UsageError(f"variant '{variant}' is not available in this Mitsuba build (available: "
-                         f"{', '.join(v for v in mi.variants() if unsupported_variant_reason(v) is None)})")
-    try:
-        mi.set_variant(variant)
-    except Exception as err:  # e.g. a cuda_ variant on a machine without a GPU
-        raise UsageError(f"variant '{variant}' cannot be used here: {str(err).splitlines()[0]}") from None
-
-
 def _split(text: str | None) -> list[str] | None:
     return [t.strip() for t in text.split(",") if t.strip()] if text else None
 
@@ -111,7 +89,7 @@ def _compare(args) -> int:
     unknown = [s for s in samplers if s not in SAMPLERS]
     if unknown or not samplers:
         raise UsageError(f"unknown sampler(s) {', '.join(unknown) or '(none)'}; choose among {', '.join(SAMPLERS)}")
-    _set_variant(args.variant)
+    set_variant(args.variant)
 
     from . import scenes
     from .report.compare import CompareSettings, run_compare
@@ -180,7 +158,7 @@ def _print_summary(report: dict) -> None:
 
 
 def _bench(args) -> int:
-    _set_variant(args.variant)
+    set_variant(args.variant)
     from .report.bench import run_bench
 
     max_spp = args.max_spp or (16 if args.quick else 256)
@@ -212,7 +190,7 @@ def _user_error(err: BaseException) -> str | None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mitsuba-shsampling`` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
-    commands = {"compare": _compare, "bench": _bench, "render": lambda a: render.main(a, _set_variant),
+    commands = {"compare": _compare, "bench": _bench, "render": lambda a: render.main(a, set_variant),
                 "sweep": sweep.command}
     try:
         return commands[args.command](args)

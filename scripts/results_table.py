@@ -4,7 +4,8 @@
     python scripts/results_table.py sweep_out/aggregate.json     # every finished cell of a sweep
 
 For every scene x sampler, the SH method is set against the *best* of
-Mitsuba's own strategies in the same run (lowest expected MSE at equal samples,
+Mitsuba's own direct-lighting strategies in the same run (the set of
+``mitsuba_shsampling.report.methods.mitsuba_strategies``, as in the verdict; lowest expected MSE at equal samples,
 highest efficiency = 1/(MSE x time) from the equal-sample passes, and from the
 renders at equal time), and against ``direct`` 1+1. "bias ok" is
 the report's bias test (p >= 1e-3), "tail ok" its tail comparison with ``direct``.
@@ -16,10 +17,10 @@ import argparse
 import json
 import os
 
-MITSUBA_METHODS = ("direct", "direct_misc", "env_only")
+from mitsuba_shsampling.report.methods import mitsuba_strategies
+from mitsuba_shsampling.sweep.aggregate import KIND as SWEEP_AGGREGATE
+
 SH_METHOD = "sh_direct"
-#: The ``kind`` of a sweep's aggregate.json (mitsuba_shsampling/sweep/aggregate.py: KIND).
-SWEEP_AGGREGATE = "mitsuba-shsampling sweep aggregate"
 
 
 def reports(path: str):
@@ -47,12 +48,13 @@ def rows(report: dict):
             if SH_METHOD not in methods:
                 continue
             ours = methods[SH_METHOD]["equal_spp"]
-            theirs = {n: methods[n]["equal_spp"] for n in MITSUBA_METHODS if n in methods}
+            mitsuba = mitsuba_strategies(methods)
+            theirs = {n: methods[n]["equal_spp"] for n in mitsuba}
             best_mse = min(theirs, key=lambda n: theirs[n]["error"]["mse"])
             best_eff = max(theirs, key=lambda n: theirs[n]["efficiency"])
             direct = theirs.get("direct")
-            timed = {n: methods[n]["equal_time"]["efficiency"] for n in (*MITSUBA_METHODS, SH_METHOD)
-                     if n in methods and methods[n].get("equal_time")}
+            timed = {n: methods[n]["equal_time"]["efficiency"] for n in (*mitsuba, SH_METHOD)
+                     if methods[n].get("equal_time")}
             best_timed = max((n for n in timed if n != SH_METHOD), key=timed.get, default=None)
             yield {
                 "map": envmap_name(report), "scene": scene["scene"], "sampler": run["sampler"],

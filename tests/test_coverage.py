@@ -23,6 +23,7 @@ mi.set_variant("llvm_ad_rgb")
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
+from mitsuba_shsampling.integrators.options import ProductOptions  # noqa: E402
 from mitsuba_shsampling.scenes import load_scene, unit_scene_path  # noqa: E402
 
 from test_integrators import assert_unbiased, make_scene, MATERIALS  # noqa: E402
@@ -98,7 +99,8 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
     # Every scene BSDF goes through the same classification as in the integrators.
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        env = ProductEnvironment(scene, max_bands=8, sh_depth=3, mis_compensation=product_only_lanes,
+        env = ProductEnvironment(scene, ProductOptions(max_bands=8, sh_depth=3,
+                                                       mis_compensation=product_only_lanes),
                                  plain_product=product_only_lanes)
     emitter = scene.environment()
     rng = np.random.default_rng(seed)
@@ -181,7 +183,7 @@ def test_rough_lobes_give_every_sample_to_the_product_and_sharp_ones_do_not():
     def product_only_fraction(bsdf):
         scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(),
                               "ball": {"type": "sphere", "bsdf": bsdf}})
-        env = ProductEnvironment(scene, max_bands=8, sh_depth=3, plain_product=True)
+        env = ProductEnvironment(scene, ProductOptions(max_bands=8, sh_depth=3), plain_product=True)
         ray = mi.Ray3f(mi.Point3f(0, 0, 4), mi.Vector3f(0, 0, -1))
         si = scene.ray_intersect(ray)
         bsdf_ptr = si.bsdf(ray)
@@ -196,7 +198,7 @@ def test_rough_lobes_give_every_sample_to_the_product_and_sharp_ones_do_not():
 def test_no_lane_goes_product_only_unless_the_uncompensated_product_was_built():
     scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(),
                           "ball": {"type": "sphere", "bsdf": BSDFS["diffuse"]}})
-    env = ProductEnvironment(scene, max_bands=8, sh_depth=3, mis_compensation=True)
+    env = ProductEnvironment(scene, ProductOptions(max_bands=8, sh_depth=3, mis_compensation=True))
     assert env.warp_plain is None
     si = scene.ray_intersect(mi.Ray3f(mi.Point3f(0, 0, 4), mi.Vector3f(0, 0, -1)))
     _, use_product = env.lobe(si, si.is_valid())
@@ -208,7 +210,7 @@ def test_frame_perturbing_wrappers_fall_back_to_mitsubas_environment_sampling_wi
                           "ball": {"type": "sphere", "bsdf": BSDFS["bumpmap"]},
                           "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"}}})
     with pytest.warns(UserWarning, match="perturbs the shading frame"):
-        env = ProductEnvironment(scene, max_bands=8, sh_depth=3)
+        env = ProductEnvironment(scene, ProductOptions(max_bands=8, sh_depth=3))
     assert env.active and env.needs_emitter_sampling
 
 

@@ -33,6 +33,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..grid import TWO_PI
 
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
 #: buffer is 22.4 MB. Deeper levels would not help the warps anyway: rescaling
@@ -43,7 +44,6 @@ DEFAULT_MAX_DEPTH = 11
 #: Rec. 709 luminance weights, identical to ``mi.luminance``.
 LUMINANCE_WEIGHTS = np.array([0.212671, 0.715160, 0.072169])
 
-_TWO_PI = 2.0 * np.pi
 #: Number of 4-float blocks before level k+1 is ``1 + (4^k - 1) / 3``; the
 #: quotient is the bit pattern 0b0101...01 (k ones), i.e. this mask cut to
 #: 2k bits, which avoids an integer division in traced code.
@@ -57,10 +57,9 @@ SUBTEXEL_LEVELS = 2
 """Levels finer than the texels, up to :data:`DEFAULT_MAX_DEPTH`. Radiance is
 bilinear between texels and the leaves are sampled uniformly, so a one-texel
 sun (a two-texel hat after interpolation) falls linearly across a texel-sized
-leaf: 1/3 relative variance per sample. Measured with ``sh_direct`` (96 px,
-GGX 0.1/0.3): on the 512-wide sun-and-sky map +2 levels gave 2.9-4.6x the
-efficiency of +0; on 1k maps +1 level was best and +2 cost 11 % (deeper
-gathers, 89 MB pyramid). Capping at depth 11 gives each map what it needs."""
+leaf: 1/3 relative variance per sample. Two levels helped a 512-wide
+sun-and-sky map a lot, one was best on 1k maps (docs/MEASUREMENTS.md,
+"Environment pyramid"); capping at depth 11 gives each map what it needs."""
 
 
 def auto_depth(height: int, width: int, max_depth: int = DEFAULT_MAX_DEPTH) -> int:
@@ -148,7 +147,7 @@ def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
         np.cumsum(0.5 * (ext[:, :-1] + ext[:, 1:]), axis=1, out=cumulative[:, 1:])
         lo, hi = ext[:, node], ext[:, node + 1]
         antideriv = cumulative[:, node] + lo * frac + (hi - lo) * (0.5 * frac * frac)
-        u_cells = (_TWO_PI / width) * (antideriv[:, 1:] - antideriv[:, :-1])
+        u_cells = (TWO_PI / width) * (antideriv[:, 1:] - antideriv[:, :-1])
         # phi_g = 2 pi (1 - u): phi-cell iphi is u-cell n - 1 - iphi.
         out[r0:r0 + _CHUNK] = u_cells[:, ::-1]
     return out

@@ -10,7 +10,7 @@ Mitsuba counterparts.
 from __future__ import annotations
 
 import warnings
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import drjit as dr
 import mitsuba as mi
@@ -18,13 +18,18 @@ import mitsuba as mi
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
 from ..lobes.scene_lobes import registry_id
-from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, ProductWarp
+from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from .estimators import environment_ray_target, is_emitter, mis_weight, mitsuba_emitter_sample
+from .options import ProductOptions
 
 
 class ProductEnvironment:
     """Environment product sampling for one scene.
+
+    Built from the plugin's checked ``options`` (``max_bands``, ``sh_depth``,
+    ``proxy_depth``, ``mis_compensation``, ``defensive_share``); ``plain_product``
+    also builds the product with the uncompensated map (:attr:`warp_plain`).
 
     Attributes: ``emitter`` (the envmap or None), ``active`` (bool: product
     sampling runs for this scene), ``reason`` (why not, when inactive),
@@ -32,9 +37,7 @@ class ProductEnvironment:
     Mitsuba's emitter sampling has work to do besides the environment).
     """
 
-    def __init__(self, scene: mi.Scene, max_bands: int = 20, sh_depth: int | None = None,
-                 mis_compensation: bool = True, defensive_share: float = DEFAULT_DEFENSIVE_SHARE,
-                 plain_product: bool = False, proxy_depth: int | None = DEFAULT_PROXY_DEPTH):
+    def __init__(self, scene: mi.Scene, options: ProductOptions, plain_product: bool = False):
         self.scene = scene
         self.emitter = scene.environment()
         self.pyramid = self.lobes = self.warp = None
@@ -49,16 +52,17 @@ class ProductEnvironment:
                            "it keeps Mitsuba's own sampling")
             warnings.warn(f"mitsuba_shsampling: {self.reason}")
             return
-        self.lobes = SceneLobes(scene, max_bands=max_bands)
+        self.lobes = SceneLobes(scene, max_bands=options.max_bands)
         if not self.lobes.has_product_lobes:
             self.reason = "no BSDF in the scene has a lobe worth product sampling (all delta or unsupported)"
             return
-        self.pyramid = EnvPyramid(self.emitter, mis_compensation=mis_compensation)
+        self.pyramid = EnvPyramid(self.emitter, mis_compensation=options.mis_compensation)
         if self.pyramid.is_black:
             self.reason = "the environment map is black"
             return
-        self.warp = ProductWarp(self.pyramid, sh_depth=sh_depth, defensive_share=defensive_share,
-                                proxy_depth=proxy_depth)
+        warp_options = dict(sh_depth=options.warp_sh_depth, defensive_share=options.defensive_share,
+                            proxy_depth=options.warp_proxy_depth)
+        self.warp = ProductWarp(self.pyramid, **warp_options)
         #: The product with the map itself (not compensated): the strategy of
         #: lanes where it carries every sample, so that nothing is left to a
         #: BSDF sample that does not run there. The same warp when the scene's
@@ -66,9 +70,7 @@ class ProductEnvironment:
         #: a second pyramid) otherwise, and None without it.
         self.warp_plain = self.warp
         if self.pyramid.mis_compensation:
-            self.warp_plain = (ProductWarp(EnvPyramid(self.emitter), sh_depth=sh_depth,
-                                           defensive_share=defensive_share, proxy_depth=proxy_depth)
-                               if plain_product else None)
+            self.warp_plain = ProductWarp(EnvPyramid(self.emitter), **warp_options) if plain_product else None
         self.active = True
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it:
@@ -102,12 +104,9 @@ class ProductEnvironment:
         in ``plain`` lanes, from :attr:`warp` in the others (a symbolic branch,
         so a SIMD packet runs only the walk its lanes need).
 
-        Diffuse lanes once walked with only the 3 bands that describe them, in
-        a further branch; measured (``scripts/ab_interleaved.py``, 192 px,
-        ``product_allocation`` on) it cost more than it saved: pass time 2.00x
-        -> 1.84x ``direct``'s on the GGX 0.1 sphere under the studio map, 2.15x ->
-        2.01x on GGX 0.3 and 1.69x -> 1.67x on the diffuse sphere without it,
-        the variance unchanged (the larger kernel is what costs)."""
+        Diffuse lanes walk all the bands: a further branch with only the 3
+        that describe them cost more (a larger kernel) than it saved
+        (docs/MEASUREMENTS.md, "Product allocation")."""
         if plain is False or self.warp_plain is self.warp:
             return self.warp.sample(lobe.coeffs, u, lobe.proxy)
         return dr.if_stmt(args=(lobe, u), cond=plain,
@@ -180,7 +179,8 @@ class LaneLobe(NamedTuple):
 
 
 class SceneCache:
-    """Builds :class:`ProductEnvironment` for a scene, and again whenever its inputs change.
+    """Builds a per-scene state with ``build(scene)`` (:class:`ProductEnvironment`,
+    the oracle's state), and again whenever the scene's inputs change.
 
     The state is built from the environment emitter's traversed parameters
     (``data``, ``scale``, ``to_world``) and those of every BSDF. Each
@@ -191,18 +191,13 @@ class SceneCache:
     those references also keeps the old indices from being recycled.
     """
 
-    def __init__(self, max_bands: int, sh_depth: int | None, mis_compensation: bool,
-                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE, plain_product: bool = False,
-                 proxy_depth: int | None = DEFAULT_PROXY_DEPTH):
-        self.max_bands, self.sh_depth, self.mis_compensation = max_bands, sh_depth, mis_compensation
-        self.defensive_share, self.plain_product = defensive_share, plain_product
-        self.proxy_depth = proxy_depth
+    def __init__(self, build: Callable[[mi.Scene], object]):
+        self._build = build
         self._scene, self._env = None, None
         self._key, self._held = None, []
 
     def get(self, scene: mi.Scene):
-        """The state for ``scene`` (a :class:`ProductEnvironment`, or what a
-        subclass's :meth:`_build` makes), built again when its inputs changed."""
+        """The state ``build`` made for ``scene``, built again when its inputs changed."""
         if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
             self._env = self._build(scene)
             self._scene = scene
@@ -211,11 +206,6 @@ class SceneCache:
             self._key = self._identity(inputs)
             self._held = [type(value)(value) for value in inputs if dr.detail.collect_indices(value)]
         return self._env
-
-    def _build(self, scene: mi.Scene) -> ProductEnvironment:
-        """The per-scene state this cache holds (subclasses build other states)."""
-        return ProductEnvironment(scene, self.max_bands, self.sh_depth, self.mis_compensation,
-                                  self.defensive_share, self.plain_product, self.proxy_depth)
 
     @staticmethod
     def _inputs(scene: mi.Scene) -> list:

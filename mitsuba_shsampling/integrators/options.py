@@ -31,24 +31,19 @@ import dataclasses
 import warnings
 from typing import ClassVar
 
-from ..lobes.scene_lobes import DIFFUSE_BANDS
-from ..sh.basis import MAX_ORDER
+from ..lobes.scene_lobes import DEFAULT_MAX_BANDS, DIFFUSE_BANDS, MAX_BANDS, check_max_bands
 from ..warp.hierarchy import MAX_DEPTH
 from ..warp.oracle import (DEFAULT_RESOLUTION as DEFAULT_ORACLE_RESOLUTION,
                            MAX_RESOLUTION as MAX_ORACLE_RESOLUTION, check_resolution)
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, check_defensive_share
 
-#: Band counts the lobe proxies support: the diffuse part needs 3 bands, the SH
-#: basis goes to l = MAX_ORDER.
-MIN_BANDS, MAX_BANDS = DIFFUSE_BANDS, MAX_ORDER + 1
+#: Band counts the lobe proxies support (:func:`~..lobes.scene_lobes.check_max_bands`).
+MIN_BANDS = DIFFUSE_BANDS
 
-# Defaults chosen from end-to-end measurements. 8 bands: 10-20 bands and deeper
-# SH levels cost more time than they saved variance (README "Measured
-# results"). sh_depth 2 with the closed-form proxy down to level 6
-# (DEFAULT_PROXY_DEPTH): at about the kernel operations of sh_depth 3 without
-# the proxy, 10-30 % less per-pixel variance on every sphere and map measured
-# (docs/MATH.md, "Closed-form proxy levels").
-DEFAULT_MAX_BANDS = 8
+# sh_depth 2 with the closed-form proxy down to level 6 (DEFAULT_PROXY_DEPTH):
+# at about the kernel operations of sh_depth 3 without the proxy, less
+# per-pixel variance on every sphere and map measured (docs/MEASUREMENTS.md,
+# "Band count, SH depth and proxy levels").
 DEFAULT_SH_DEPTH = 2
 
 
@@ -144,7 +139,9 @@ class ProductOptions(PluginOptions):
         "(whose rare hits on a bright light are fireflies). In (0, 1]."))
 
     def _check_ranges(self) -> None:
-        if not MIN_BANDS <= self.max_bands <= MAX_BANDS:
+        try:
+            check_max_bands(self.max_bands)
+        except ValueError:
             self._fail("max_bands", f"must be in [{MIN_BANDS}, {MAX_BANDS}]", self.max_bands)
         if not (self.sh_depth == -1 or 1 <= self.sh_depth <= MAX_DEPTH):
             self._fail("sh_depth", f"must be in [1, {MAX_DEPTH}] or -1 (automatic)", self.sh_depth)
@@ -185,13 +182,9 @@ class DirectOptions(ProductOptions):
         "closely: the lobe proxy needs no widening to fit ``max_bands`` and the BSDF has no Dirac "
         "part (diffuse and rough lobes). Those lanes draw ``emitter_samples + bsdf_samples`` "
         "product samples from the uncompensated map, equally weighted, and no BSDF sample; the "
-        "others combine product and BSDF samples under MIS. Measured (192 px, 4 spp, 16 passes "
-        "timed interleaved, ``scripts/ab_interleaved.py``, efficiency against this integrator "
-        "without it): +45-53 % on diffuse spheres (immenstadter_horn, sun-and-sky) and GGX 0.3 "
-        "(immenstadter_horn), +24 % GGX 0.3 and +17 % principled (forest_slope), +9 % "
-        "roughplastic (potsdamer_platz), but -8 % and -20 % on GGX 0.1 spheres (studio, the "
-        "default scene): their error is the sphere's, which keeps MIS, while the pass takes "
-        "10-25 % longer."))
+        "others combine product and BSDF samples under MIS. Off by default: it gains on diffuse "
+        "and rough spheres and loses on GGX 0.1 ones, whose error the MIS part keeps while the "
+        "pass takes longer (docs/MEASUREMENTS.md, \"Product allocation\")."))
 
     def _check_ranges(self) -> None:
         super()._check_ranges()

@@ -66,11 +66,8 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        self.options = OracleOptions.from_properties(props)
-        self.emitter_samples = self.options.emitter_samples
-        self.bsdf_samples = self.options.bsdf_samples
-        self.hide_emitters = self.options.hide_emitters
-        self.scenes = OracleCache(self.options.resolution, self.options.defensive_share)
+        self.options = options = OracleOptions.from_properties(props)
+        self.scenes = SceneCache(lambda scene: OracleEnvironment(scene, options))
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass
@@ -78,10 +75,11 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         env = self.scenes.get(scene)
-        hit = first_hit(scene, ray, active, self.hide_emitters)
+        options = self.options
+        hit = first_hit(scene, ray, active, options.hide_emitters)
         si, bsdf, ctx, smooth = hit.si, hit.bsdf, hit.ctx, hit.smooth
         L = hit.emitted
-        n_e, n_b = self.emitter_samples, self.bsdf_samples
+        n_e, n_b = options.emitter_samples, options.bsdf_samples
         frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
 
         # ------------- The oracle's table: the BSDF at every cell centre -------------
@@ -113,7 +111,7 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
             L += bsdf_sample_of_emitters(scene, hit, sampler.next_1d(hit.active), sampler.next_2d(hit.active),
                                          strategy_pdf, frac_e, frac_b) / n_b
 
-        sees_environment = not self.hide_emitters and scene.environment() is not None
+        sees_environment = not options.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []
 
     def to_string(self):
@@ -128,10 +126,11 @@ class OracleEnvironment:
     uncompensated pyramid; None when the scene has no usable ``envmap``, and
     every lane then uses Mitsuba's emitter sampling), ``reason`` (why not),
     ``needs_emitter_sampling`` (Mitsuba's emitter sampling has work besides
-    the environment).
+    the environment). Built from the plugin's checked ``options`` (``resolution``,
+    ``defensive_share``).
     """
 
-    def __init__(self, scene: mi.Scene, resolution: int, defensive_share: float):
+    def __init__(self, scene: mi.Scene, options: OracleOptions):
         self.emitter = scene.environment()
         self.warp = None
         others = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
@@ -144,7 +143,7 @@ class OracleEnvironment:
             pyramid = EnvPyramid(self.emitter)
             self.reason = "the environment map is black" if pyramid.is_black else ""
             if not pyramid.is_black:
-                self.warp = OracleWarp(pyramid, resolution, defensive_share)
+                self.warp = OracleWarp(pyramid, options.resolution, options.defensive_share)
                 self.needs_emitter_sampling = bool(others)
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
@@ -178,13 +177,3 @@ class OracleEnvironment:
         return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
                                       frac_e, frac_b)
 
-
-class OracleCache(SceneCache):
-    """:class:`~.environment.SceneCache`'s change detection, building :class:`OracleEnvironment`."""
-
-    def __init__(self, resolution: int, defensive_share: float):
-        super().__init__(max_bands=0, sh_depth=None, mis_compensation=False, defensive_share=defensive_share)
-        self.resolution = resolution
-
-    def _build(self, scene: mi.Scene) -> OracleEnvironment:
-        return OracleEnvironment(scene, self.resolution, self.defensive_share)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .environment import SceneCache
+from .environment import ProductEnvironment, SceneCache
 from .estimators import bsdf_sample_of_emitters, first_hit
 from .options import DirectOptions, document_parameters
 
@@ -48,17 +48,11 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        self.options = DirectOptions.from_properties(props)
-        self.emitter_samples = self.options.emitter_samples
-        self.bsdf_samples = self.options.bsdf_samples
-        self.hide_emitters = self.options.hide_emitters
-        self.allocation = self.options.product_allocation
+        self.options = options = DirectOptions.from_properties(props)
         # Lanes that give every sample to the product need the uncompensated
         # product: built only when allocation can happen.
-        self.scenes = SceneCache(self.options.max_bands, self.options.warp_sh_depth,
-                                 self.options.mis_compensation, self.options.defensive_share,
-                                 plain_product=self.allocation and self.bsdf_samples > 0,
-                                 proxy_depth=self.options.warp_proxy_depth)
+        plain_product = options.product_allocation and options.bsdf_samples > 0
+        self.scenes = SceneCache(lambda scene: ProductEnvironment(scene, options, plain_product))
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass
@@ -66,17 +60,18 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         env = self.scenes.get(scene)
-        hit = first_hit(scene, ray, active, self.hide_emitters)
+        options = self.options
+        hit = first_hit(scene, ray, active, options.hide_emitters)
         si, bsdf, ctx, smooth = hit.si, hit.bsdf, hit.ctx, hit.smooth
         L = hit.emitted
-        n_e, n_b = self.emitter_samples, self.bsdf_samples
+        n_e, n_b = options.emitter_samples, options.bsdf_samples
         frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
 
         lobe, use_product = env.lobe(si, smooth)
         # Lanes where the product alone follows the integrand give it every
         # sample (drawn from the uncompensated map); the others combine one
         # strategy per sample type under MIS.
-        product_only = env.product_carries_all(si, bsdf, use_product) if self.allocation and n_b > 0 else False
+        product_only = env.product_carries_all(si, bsdf, use_product) if options.product_allocation and n_b > 0 else False
 
         # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
         for _ in range(n_e):
@@ -105,7 +100,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b) / n_b)
 
-        sees_environment = not self.hide_emitters and scene.environment() is not None
+        sees_environment = not options.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []
 
     def to_string(self):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .environment import SceneCache
+from .environment import ProductEnvironment, SceneCache
 from .estimators import mis_weight
 from .options import PathOptions, document_parameters
 
@@ -46,13 +46,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        self.options = PathOptions.from_properties(props)
-        self.max_depth = self.options.max_depth
-        self.rr_depth = self.options.rr_depth
-        self.hide_emitters = self.options.hide_emitters
-        self.scenes = SceneCache(self.options.max_bands, self.options.warp_sh_depth,
-                                 self.options.mis_compensation, self.options.defensive_share,
-                                 proxy_depth=self.options.warp_proxy_depth)
+        self.options = options = PathOptions.from_properties(props)
+        self.scenes = SceneCache(lambda scene: ProductEnvironment(scene, options))
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self.scenes.get(scene)  # build host-side state before tracing the pass
@@ -61,10 +56,10 @@ class SHPathIntegrator(mi.SamplingIntegrator):
     @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):
         # As Mitsuba's path: max_depth 0 renders nothing (not even emitters, alpha 0).
-        if dr.hint(self.max_depth == 0, mode="scalar"):
+        if dr.hint(self.options.max_depth == 0, mode="scalar"):
             return mi.Spectrum(0.0), mi.Bool(False), []
         env = self.scenes.get(scene)
-        max_depth = self.max_depth if self.max_depth >= 0 else 0xFFFFFFFF
+        max_depth = self.options.max_depth if self.options.max_depth >= 0 else 0xFFFFFFFF
         ctx = mi.BSDFContext()
 
         # --------------------- Configure loop state ----------------------
@@ -74,7 +69,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         beta = mi.Spectrum(1.0)
         eta = mi.Float(1.0)
         depth = mi.UInt32(0)
-        valid_ray = mi.Bool(not self.hide_emitters and scene.environment() is not None)
+        valid_ray = mi.Bool(not self.options.hide_emitters and scene.environment() is not None)
         prev_si = dr.zeros(mi.Interaction3f)
         prev_bsdf_pdf = mi.Float(1.0)
         prev_bsdf_delta = mi.Bool(True)
@@ -90,7 +85,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             em_pdf = env.hit_pdf(emitter, prev_product, prev_product_pdf,
                                  scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta))
             em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
-            visible = active & ((depth > 0) | (not self.hide_emitters))
+            visible = active & ((depth > 0) | (not self.options.hide_emitters))
             L += dr.select(visible, beta * mis_weight(prev_bsdf_pdf, em_pdf) * emitter.eval(si, visible), 0.0)
 
             active_next = active & si.is_valid() & (depth + 1 < max_depth)
@@ -123,7 +118,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
 
             # ---------------------------- Russian roulette ----------------------------
             beta_max = dr.max(beta * dr.square(eta))
-            rr_active = depth >= self.rr_depth
+            rr_active = depth >= self.options.rr_depth
             rr_prob = dr.minimum(beta_max, 0.95)
             rr_continue = sampler.next_1d(active_next) < rr_prob
             beta = dr.select(rr_active, beta * dr.rcp(rr_prob), beta)

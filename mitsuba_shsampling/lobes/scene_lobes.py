@@ -29,6 +29,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..sh.basis import MAX_ORDER
 from ..sh.zonal import clamped_cosine_attenuation, phong_attenuation, zonal_to_sh
 from ..warp.proxy_lobe import ProxyLobe
 from .fit import fit_two_lobe, mirror_quadrature, tabulate_lobe, uv_positions, varies_over_surface
@@ -40,12 +41,27 @@ BAND_ATTENUATION_TOL = 0.1
 DIFFUSE_BANDS = 3
 """Bands kept for the diffuse (clamped cosine) part, and for diffuse-only scenes."""
 
+MAX_BANDS = MAX_ORDER + 1
+"""The SH basis goes to l = MAX_ORDER."""
+
+# 8 bands: 10-20 bands cost more time than they saved variance end to end
+# (docs/MEASUREMENTS.md, "Band count, SH depth and proxy levels").
+DEFAULT_MAX_BANDS = 8
+"""Cap on a scene's band count unless the caller sets one (the plugins' ``max_bands``)."""
+
 MIN_GLOSSY_FRACTION = 0.05
 """A fitted Phong lobe carrying less than this fraction of the energy does not
 raise the scene's band count (it is a minor correction to a diffuse lobe)."""
 
 MIN_VIEW_COSINE = 0.02
 """Grazing limit of the fitted view elevations; lanes below reuse this node."""
+
+
+def check_max_bands(max_bands: int) -> None:
+    """Raise ValueError unless ``max_bands`` is an int in [DIFFUSE_BANDS, MAX_BANDS]."""
+    if isinstance(max_bands, bool) or not isinstance(max_bands, int) \
+            or not DIFFUSE_BANDS <= max_bands <= MAX_BANDS:
+        raise ValueError(f"max_bands must be an int in [{DIFFUSE_BANDS}, {MAX_BANDS}], got {max_bands!r}")
 
 
 def bands_for_exponent(s: float, tol: float = BAND_ATTENUATION_TOL, limit: int = 64) -> int:
@@ -112,7 +128,7 @@ class SceneLobes:
     Parameters:
 
     - ``scene`` (mi.Scene): the BSDFs of ``scene.shapes()`` are fitted once, here.
-    - ``max_bands`` (int, default 20): cap on the scene's band count.
+    - ``max_bands`` (int, default :data:`DEFAULT_MAX_BANDS`): cap on the scene's band count.
     - ``view_nodes`` (int, default 16): view elevations fitted per BSDF and side,
       uniform in cos theta on [0.02, 1]; parameters are interpolated linearly in
       between (the exponent in log space).
@@ -127,10 +143,9 @@ class SceneLobes:
     wider, ringing-free one rather than a ringing one).
     """
 
-    def __init__(self, scene: mi.Scene, max_bands: int = 20, view_nodes: int = 16,
+    def __init__(self, scene: mi.Scene, max_bands: int = DEFAULT_MAX_BANDS, view_nodes: int = 16,
                  uv_samples: int = 16):
-        if isinstance(max_bands, bool) or not isinstance(max_bands, int) or max_bands < DIFFUSE_BANDS:
-            raise ValueError(f"max_bands must be an int >= {DIFFUSE_BANDS}, got {max_bands!r}")
+        check_max_bands(max_bands)
         if view_nodes < 2:
             raise ValueError(f"view_nodes must be >= 2, got {view_nodes}")
         self.max_bands = max_bands

@@ -31,7 +31,8 @@ import math
 
 from ..scenes import SceneError, scene_envmap
 from . import DEFAULT_CACHE_DIR, html, images, materials, metrics, verdict
-from .methods import BASELINE, DIRECT, METHODS, MULTI_BOUNCE_BASELINE, Method, available_methods
+from .methods import (BASELINE, DIRECT, MITSUBA_METHODS, MULTI_BOUNCE_BASELINE, PROJECT_METHODS, Method,
+                      available_methods)
 from .figures import sampler_demo_figures
 from .plots import convergence_figure
 from .rendering import (SEED_CONVERGENCE, SEED_EQUAL_TIME, MethodRenderer, PassSet, Reference,
@@ -378,11 +379,10 @@ class SceneComparison:
         out = {}
         for family in sorted({m.family for m in methods}):
             names = [m.name for m in methods if m.family == family and not m.oracle]
-            project = [n for n in names if n in PROJECT_METHODS]
             out[family] = materials.breakdown(
                 ids, labels, {n: equal_spp[n].images for n in names},
-                {n: equal_time[n].images for n in names if n in equal_time},
-                refs[family].image, project, [n for n in names if n not in PROJECT_METHODS])
+                {n: equal_time[n].images for n in names if n in equal_time}, refs[family].image,
+                [n for n in names if n in PROJECT_METHODS], [n for n in names if n in MITSUBA_METHODS])
         return out
 
     @staticmethod
@@ -486,12 +486,6 @@ def serialise(value):
     return value
 
 
-#: Names of the project's methods (those needing a plugin of this package), for the verdict.
-PROJECT_METHODS = frozenset(m.name for m in METHODS if m.plugin is not None and not m.oracle)
-#: Reference rows, which the verdict leaves out.
-ORACLE_METHODS = frozenset(m.name for m in METHODS if m.oracle)
-
-
 def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
     """Run the comparison of every scene, write the report folder, return the report (JSON form)."""
     os.makedirs(settings.out, exist_ok=True)
@@ -507,7 +501,7 @@ def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
             report["scenes"].append(SceneComparison(path, settings, bar).run())
     report["total_time_s"] = time.time() - started
     report = serialise(report)
-    report["verdict"] = serialise(verdict.verdict(report, PROJECT_METHODS, ORACLE_METHODS))
+    report["verdict"] = serialise(verdict.verdict(report))
     with open(os.path.join(settings.out, "report.json"), "w") as f:
         json.dump(report, f, indent=2, allow_nan=False)
     write_csv(os.path.join(settings.out, "metrics.csv"), report)

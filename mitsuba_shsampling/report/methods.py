@@ -7,11 +7,17 @@ plus a BSDF sample are 2 rays, as ``direct`` 1+1). Methods whose plugin this
 process cannot load (e.g. ``sh_direct`` under an unsupported variant) are left
 out with a note by :func:`available_methods`.
 
-Oracle rows (:attr:`Method.oracle`) are references, not contenders: the exact
-tabulated product (``oracle_direct``) shows how close the SH product gets to
-an ideal product sampler that costs thousands of BSDF evaluations per sample.
-They run only when named (``--methods``), and the verdict and the sweep's
-winner leave them out.
+Each method has one role (:attr:`Method.role`), and every place that sets methods
+against each other reads it here: the verdict, the sweep's aggregate and
+``scripts/results_table.py``.
+
+- :data:`PROJECT`: this package's product sampling (the methods that need its plugins);
+- :data:`MITSUBA`: Mitsuba's own strategies. "The best Mitsuba strategy" of a run is the
+  best of *every* method of this role in the same family that ran (:func:`mitsuba_strategies`);
+- :data:`REFERENCE`: reference rows, not contenders: the exact tabulated product
+  (``oracle_direct``) shows how close the SH product gets to an ideal product sampler that
+  costs thousands of BSDF evaluations per sample. They run only when named (``--methods``),
+  and the verdict and the sweep's winner leave them out.
 """
 
 from __future__ import annotations
@@ -24,6 +30,11 @@ import mitsuba as mi
 DIRECT = "direct"
 #: Multi-bounce methods; their reference is ``path`` with the same max_depth.
 MULTI_BOUNCE = "path"
+
+#: Roles of a method (see the module docstring).
+PROJECT = "project"
+MITSUBA = "mitsuba"
+REFERENCE = "reference"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,8 +55,9 @@ class Method:
     :param plugin: integrator plugin type that must be loadable for the method to run.
     :param product_sampling: whether the method samples the environment with the SH product
         (only meaningful on scenes with an envmap).
-    :param oracle: a reference row (an ideal sampler no renderer would pay for): left out of the
-        default method set and never a contender in the verdict or a sweep's winner.
+    :param role: :data:`PROJECT`, :data:`MITSUBA` or :data:`REFERENCE` (an ideal sampler no
+        renderer would pay for: left out of the default method set and never a contender in
+        the verdict or a sweep's winner).
     """
 
     name: str
@@ -56,7 +68,12 @@ class Method:
     scene_params: dict = dataclasses.field(default_factory=dict)
     plugin: str | None = None
     product_sampling: bool = False
-    oracle: bool = False
+    role: str = MITSUBA
+
+    @property
+    def oracle(self) -> bool:
+        """A reference row (:data:`REFERENCE`)."""
+        return self.role == REFERENCE
 
     def load_integrator(self, max_depth: int) -> mi.Integrator:
         """Instantiate the integrator (``max_depth`` applies to the multi-bounce family)."""
@@ -77,27 +94,44 @@ METHODS: tuple[Method, ...] = (
            {"type": "direct", "emitter_samples": 0, "bsdf_samples": 2}),
     Method("sh_direct", "SH product + BSDF (MIS)",
            {"type": "sh_direct", "emitter_samples": 1, "bsdf_samples": 1},
-           plugin="sh_direct", product_sampling=True),
+           plugin="sh_direct", product_sampling=True, role=PROJECT),
     # Without BSDF samples nothing covers the directions the compensated
     # product never draws, so product-only sampling must not compensate.
     Method("sh_product_only", "SH product sampling only (2 samples)",
            {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0, "mis_compensation": False},
-           plugin="sh_direct", product_sampling=True),
+           plugin="sh_direct", product_sampling=True, role=PROJECT),
     # Reference rows: the ideal the SH product is measured against (see module docstring).
     Method("oracle_direct", "reference row: exact tabulated product (oracle) + BSDF (MIS)",
            {"type": "oracle_direct", "emitter_samples": 1, "bsdf_samples": 1},
-           plugin="oracle_direct", oracle=True),
+           plugin="oracle_direct", role=REFERENCE),
     Method("oracle_only", "reference row: exact tabulated product (oracle) only (2 samples)",
            {"type": "oracle_direct", "emitter_samples": 2, "bsdf_samples": 0},
-           plugin="oracle_direct", oracle=True),
+           plugin="oracle_direct", role=REFERENCE),
     Method("path", "path tracer (envmap + BSDF, MIS)", {"type": "path"}, family=MULTI_BOUNCE),
     Method("sh_path", "SH product path tracer", {"type": "sh_path"}, family=MULTI_BOUNCE,
-           plugin="sh_path", product_sampling=True),
+           plugin="sh_path", product_sampling=True, role=PROJECT),
 )
 
 #: The method every equal-time budget is measured against.
 BASELINE = "direct"
 MULTI_BOUNCE_BASELINE = "path"
+
+#: Method names by role.
+PROJECT_METHODS = frozenset(m.name for m in METHODS if m.role == PROJECT)
+MITSUBA_METHODS = frozenset(m.name for m in METHODS if m.role == MITSUBA)
+REFERENCE_METHODS = frozenset(m.name for m in METHODS if m.role == REFERENCE)
+
+
+def role_of(name: str) -> str | None:
+    """The role of method ``name``; None for a name this version does not know (an old report's)."""
+    return next((m.role for m in METHODS if m.name == name), None)
+
+
+def mitsuba_strategies(names, family: str = DIRECT) -> list[str]:
+    """Mitsuba's own strategies of ``family`` among ``names``, in their order: the set whose best
+    is "the best Mitsuba strategy" everywhere (verdict, sweep aggregate, README table)."""
+    families = {m.name: m.family for m in METHODS}
+    return [n for n in names if role_of(n) == MITSUBA and families[n] == family]
 
 
 def method_by_name(name: str) -> Method:

@@ -7,9 +7,10 @@ be recomputed from a saved report. For each scene, sampler and method family:
 - **equal time**: highest efficiency 1 / (MSE x time per pass) of the equal-time renders.
 
 The factor set against the winner is always *the project's best method over the
-best of Mitsuba's own strategies* (every method that needs no plugin: ``direct``,
-``direct`` with ``mis_compensation``, envmap-only, BSDF-only, ``path``), or, when no
-project method ran, the winner over the runner-up. Its interval is a paired
+best of Mitsuba's own strategies* (the roles of :mod:`.methods`: every Mitsuba method of
+the family that ran, ``direct``, ``direct`` with ``mis_compensation``, envmap-only and
+BSDF-only for direct lighting, ``path`` for multi-bounce), or, when no project method
+ran, the winner over the runner-up. Its interval is a paired
 bootstrap over passes: pass k of both methods is resampled together (the passes
 are i.i.d. across k; methods share seeds, so pairing also keeps their correlation).
 Reference rows (the oracle) are no contenders: they appear in the caveats only.
@@ -21,6 +22,7 @@ import dataclasses
 
 import numpy as np
 
+from .methods import MITSUBA, PROJECT, REFERENCE, role_of
 from .metrics import BIAS_ALPHA, TAIL_PERCENTILE
 
 #: Bootstrap resamples and the two-sided coverage of the interval.
@@ -153,19 +155,18 @@ def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders
     return notes
 
 
-def verdict(report: dict, project_methods: set[str], reference_methods: set[str] = frozenset()
-            ) -> list[VerdictRow]:
+def verdict(report: dict) -> list[VerdictRow]:
     """One row per scene x sampler x method family of ``report`` (the report.json dict);
-    ``reference_methods`` (oracle rows) take no part in the contest."""
+    reference rows (:data:`.methods.REFERENCE`) take no part in the contest."""
     rows = []
     for scene in report["scenes"]:
         for run in scene["runs"]:
             results = run["methods"]
             for family in dict.fromkeys(r["family"] for r in results.values()):
                 names = [n for n, r in results.items() if r["family"] == family]
-                contenders = [n for n in names if n not in reference_methods]
-                project = [n for n in contenders if n in project_methods]
-                mitsuba = [n for n in contenders if n not in project_methods]
+                contenders = [n for n in names if role_of(n) != REFERENCE]
+                project = [n for n in contenders if role_of(n) == PROJECT]
+                mitsuba = [n for n in contenders if role_of(n) == MITSUBA]
                 if len(contenders) < 2:
                     continue
                 baseline = results[names[0]]["equal_time"]["budget_method"]

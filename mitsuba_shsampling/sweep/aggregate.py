@@ -4,18 +4,18 @@ Per cell (read from its compare ``report.json``; every field is optional, so rep
 of older or newer compare versions still summarise):
 
 - the **winner**: the method of highest equal-time efficiency (1 / (MSE x time)), reference
-  rows (``"oracle": true`` in the report, the exact tabulated product) left out;
-- the **best Mitsuba strategy**: of :data:`MITSUBA_METHODS` present, the one of highest
-  equal-time efficiency (for efficiency ratios) and the one of lowest equal-spp MSE (for
-  MSE ratios), as ``scripts/results_table.py`` chooses them;
+  rows (the exact tabulated product, :data:`~..report.methods.REFERENCE`) left out;
+- the **best Mitsuba strategy**: of Mitsuba's own direct-lighting strategies present (the
+  role of :mod:`..report.methods`, :func:`~..report.methods.mitsuba_strategies`: the verdict's
+  set), the one of highest equal-time efficiency (for efficiency ratios) and the one of lowest
+  equal-spp MSE (for MSE ratios), as ``scripts/results_table.py`` chooses them;
 - per method, the equal-time efficiency ratio and the equal-spp MSE ratio against those
   bests, with an uncertainty (one standard error) when the report lists per-pass MSEs
   (``error.mse_per_pass``): delta method over the paired passes, wall-time noise not included;
 - the bias status (``bias.flagged``, or ``bias_ok`` of older reports) and the tail status
   (``tail_worse_than_baseline``) of the equal-spp and equal-time renders;
 - the report's own verdict where it has one: the project's best method against the best of
-  Mitsuba's strategies, ratio and 90 % paired-bootstrap interval (its Mitsuba set also counts
-  ``bsdf_only``).
+  Mitsuba's strategies, ratio and 90 % paired-bootstrap interval.
 
 Heat maps (scene x map, one per sampler) show the equal-time efficiency ratio of
 :data:`HEATMAP_METHOD` against the best Mitsuba strategy on a log colour scale.
@@ -32,10 +32,9 @@ import os
 
 import numpy as np
 
+from ..report.methods import METHODS, MITSUBA, REFERENCE, mitsuba_strategies, role_of
 from .store import CellStore
 
-#: Mitsuba's own strategies among which the best is taken (``bsdf_only`` is never the best).
-MITSUBA_METHODS = ("direct", "direct_misc", "env_only")
 #: The method whose efficiency ratio the heat maps show.
 HEATMAP_METHOD = "sh_direct"
 #: Marks the JSON as a sweep aggregate (``scripts/results_table.py`` reads both kinds).
@@ -129,10 +128,10 @@ def summarise_report(report: dict) -> dict:
     eqt = {n: e.get("equal_time") if isinstance(e.get("equal_time"), dict) else {} for n, e in methods.items()}
     eff = {n: _number(eqt[n], "efficiency") for n in methods}
     mse = {n: _number(_error(spp[n]), "mse") for n in methods}
-    mitsuba = [n for n in MITSUBA_METHODS if n in methods]
+    mitsuba = mitsuba_strategies(methods)
     best_eff = max((n for n in mitsuba if eff[n] is not None), key=lambda n: eff[n], default=None)
     best_mse = min((n for n in mitsuba if mse[n] is not None), key=lambda n: mse[n], default=None)
-    contenders = [n for n, e in methods.items() if e.get("oracle") is not True]
+    contenders = [n for n in methods if role_of(n) != REFERENCE]
     winner = max((n for n in contenders if eff[n] is not None), key=lambda n: eff[n], default=None)
     direct_time = _number(spp.get("direct", {}), "time_s")
 
@@ -278,7 +277,7 @@ def write_html(path: str, aggregate: dict) -> None:
     """``index.html``: heat maps, the summary table, failed cells with their errors."""
     e = html.escape
     rows = aggregate["cells"]
-    shown = [m for m in (aggregate["grid"]["methods"] or []) if m not in MITSUBA_METHODS] or [HEATMAP_METHOD]
+    shown = [m for m in (aggregate["grid"]["methods"] or []) if role_of(m) != MITSUBA] or [HEATMAP_METHOD]
     counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "failed", "missing")}
     parts = ["<!DOCTYPE html><html><head><meta charset='utf-8'><title>sweep</title><style>",
              "body{font-family:sans-serif;margin:1.5em;color:#222}table{border-collapse:collapse;"
@@ -291,7 +290,7 @@ def write_html(path: str, aggregate: dict) -> None:
              f"<code>{e(json.dumps(aggregate['grid']['settings']))}</code>, methods "
              f"<code>{e(', '.join(aggregate['grid']['methods'] or ['compare default']))}</code>.</p>",
              "<p>Ratios are against the best of Mitsuba's strategies in the same cell (of "
-             f"{', '.join(MITSUBA_METHODS)}): equal-time efficiency ratio (&gt; 1: better) and "
+             f"{', '.join(aggregate['mitsuba_methods'])} present): equal-time efficiency ratio (&gt; 1: better) and "
              "equal-spp MSE ratio (&lt; 1: better); ± one standard error from the per-pass MSEs "
              "(paired passes, wall-time noise not included).</p>"]
     for sampler, png in aggregate["heatmaps"].items():
@@ -350,7 +349,7 @@ def write_aggregate(out: str, grid, entries: list[tuple], code_version: str) -> 
                 f.write(png)
             heatmaps[sampler] = name
     aggregate = {"kind": KIND, "grid": grid.describe(), "code_version": code_version,
-                 "heatmap_method": HEATMAP_METHOD, "mitsuba_methods": list(MITSUBA_METHODS),
+                 "heatmap_method": HEATMAP_METHOD, "mitsuba_methods": mitsuba_strategies([m.name for m in METHODS]),
                  "heatmaps": heatmaps, "cells": rows}
     paths = {"json": os.path.join(out, "aggregate.json"), "csv": os.path.join(out, "aggregate.csv"),
              "html": os.path.join(out, "index.html")}

@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def command(args: argparse.Namespace) -> int:
     """Run the sweep of ``args``; prints one line per failed cell and the report's path."""
-    from ..cli import UsageError
+    from ..command_line import UsageError
     from .grid import GridError, load_grid
 
     if args.workers is not None and args.workers < 1:

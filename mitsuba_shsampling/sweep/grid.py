@@ -36,7 +36,8 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from .. import scenes as builtin
-from ..cli import DEFAULT_VARIANT, SAMPLERS
+from .._backend import unsupported_variant_reason
+from ..command_line import DEFAULT_VARIANT, SAMPLERS
 
 #: Keyword of ``maps``: keep the scene's own environment.
 SCENE_MAP = "scene"
@@ -211,7 +212,10 @@ def load_grid(path: str) -> Grid:
                 raise GridError(f"'{key}' must be an integer >= {minimum}, got {value!r}")
             settings.append((key, value))
     variant = data.get("variant", DEFAULT_VARIANT)
-    if not isinstance(variant, str) or not variant.startswith(("llvm_", "cuda_")):
-        raise GridError(f"'variant' must name a JIT variant (e.g. {DEFAULT_VARIANT}), got {variant!r}")
+    if not isinstance(variant, str):
+        raise GridError(f"'variant' must be a string naming a JIT variant (e.g. {DEFAULT_VARIANT}), got {variant!r}")
+    reason = unsupported_variant_reason(variant)
+    if reason is not None:
+        raise GridError(f"'variant': {reason}")
     return Grid(os.path.abspath(path), scenes, maps, tuple(samplers),
                 tuple(methods) if methods else None, tuple(settings), variant)

@@ -22,12 +22,10 @@ Node weights (the four children of the current cell):
   only while the environment's full resolution is still reached by one gather
   per level.
 
-Measured (``scripts/bench_product.py --sh-depths``, immenstadter_horn 1k at
-pyramid depth 10, four Phong lobes s = n^2/5): a bilinear lobe estimate below
-``sh_depth`` (from the lobe's values at the corners of the ``sh_depth`` cell) cost about 1.2k
-kernel operations per sample at 10 bands, more than one further SH level
-(~0.8k), and gained less: at every sh_depth the environment-only levels gave
-the same or lower relative variance per operation. See
+A bilinear lobe estimate below ``sh_depth`` (from the lobe's values at the
+corners of the ``sh_depth`` cell) was measured and not kept: it cost more
+kernel operations than one further SH level and gained less
+(``docs/MEASUREMENTS.md``, "Product warp below the SH levels"). See
 :func:`default_sh_depth` for the choice of the default.
 
 Memory per shading point: the n^2 float32 coefficients (400 B at 10 bands,
@@ -79,28 +77,24 @@ def default_sh_depth(n_bands: int) -> int:
     """Default number of SH levels: the smallest k with 2^k >= 4 n (cells of
     about a quarter of the lobe's finest feature, pi/n), at least 2.
 
-    3 bands: 4, 5: 5, 10: 6, 15: 6, 20: 7. Chosen from the sweep of
-    ``scripts/bench_product.py --sh-depths`` (four Phong lobes s = n^2/5,
-    1k maps at pyramid depth 10; cost = kernel operations per sample,
-    quality = relative variance
-    of the one-sample product estimate): the product of the two is lowest at
-    this depth for 3, 5 and 15 bands on immenstadter_horn and for 10 bands on
-    studio_small_03, and 20 % above the lowest (sh_depth 3) for 10 bands on
-    immenstadter_horn, where the deeper levels still cut the variance by 40 %.
-    Shallower depths trade fidelity for speed (about 0.8k operations per SH
-    level at 10 bands, 3k at 20).
+    3 bands: 4, 5: 5, 10: 6, 15: 6, 20: 7. Chosen where kernel operations x
+    relative variance of the one-sample product estimate is lowest, or close
+    to it (``scripts/bench_product.py --sh-depths``; figures in
+    ``docs/MEASUREMENTS.md``, "Product warp below the SH levels").
     """
     return max(2, math.ceil(math.log2(4 * n_bands)))
 
 
 DEFAULT_PROXY_DEPTH = 6
 """Deepest level whose children the integrators weight by the closed-form
-proxy (:mod:`.proxy_lobe`); chosen with ``sh_depth`` 2 from the measurements
-in docs/MATH.md (section "Closed-form proxy levels")."""
+proxy (:mod:`.proxy_lobe`); chosen with ``sh_depth`` 2 (docs/MEASUREMENTS.md,
+"Band count, SH depth and proxy levels")."""
 
 DEFAULT_DEFENSIVE_SHARE = 0.1
 """Share of the environment's own distribution in the product strategy (see
-:class:`ProductWeights`); chosen from ``scripts/bench_defensive.py``."""
+:class:`ProductWeights`): it keeps the pdf positive wherever the map is lit,
+so a clamped lobe leaves no hole for BSDF samples to find a sun in with MIS
+weight 1 (docs/MEASUREMENTS.md, "Defensive share")."""
 
 
 def check_defensive_share(share) -> float:

@@ -22,13 +22,10 @@ as a GGX lobe does, instead of vanishing: a cell whose centre misses a lobe
 narrower than the cell still gets weight from its flank. It costs a
 reciprocal where cos^s would cost a logarithm and an exponential.
 
-Measured (``scripts/bench_tails.py``, 192 px, 4 spp, 8 passes, ``proxy_depth``
-6): blurring the lobe to the cell's angular size before taking the point
-value (adding c x (cell extent)^2 to its variance 1 / s) only lost, more the
-more it blurred: per-pixel variance with c = 0 / 0.01 / 0.0625 / 0.25 / 1 was
-1.095 / 1.116 / 1.188 / 1.295 / 1.443 (x 1e-1) on immenstadter_horn GGX 0.05,
-7.19 / 7.23 / 7.39 / 7.83 / 8.47 (x 1e-3) on potsdamer_platz GGX 0.1 and
-1.29 / 1.29 / 1.33 / 1.43 / 1.68 (x 1e-2) on forest_slope GGX 0.1.
+The lobe is taken at the cell's centre as it is: blurring it to the cell's
+angular size first (adding c x (cell extent)^2 to its variance 1 / s) only
+lost, more the more it blurred (docs/MEASUREMENTS.md, "The closed-form
+proxy's point value").
 
 Whatever these weights are, the walk's pdf is the exact product of its branch
 probabilities (:mod:`.hierarchy`), so they decide how well the samples follow

@@ -11,7 +11,8 @@ splits in a different order:
 2. One z-contraction A[m] for the chosen strip (two antiderivative rows and
    n^2 multiply-adds), then ``depth`` binary splits in phi of that strip:
    each half's integral is sum_m A[m] Phi_m, O(n) per level with the phi
-   centre's cos/sin carried by angle addition.
+   centre's cos/sin carried by angle addition
+   (:func:`~mitsuba_shsampling.grid.child_phi_centres`).
 
 Both phases are hierarchical warps, so the density is again the product of
 the branch probabilities (clamped at 0) times the leaf density over the leaf's
@@ -32,7 +33,7 @@ from typing import NamedTuple
 import drjit as dr
 import mitsuba as mi
 
-from ..grid import TWO_PI, Cell, grid_coordinates, grid_direction
+from ..grid import TWO_PI, Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of, sh_index
 from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives,
                             phi_integrals_centred, z_integrals, zonal_antiderivatives)
@@ -40,9 +41,9 @@ from .hierarchy import Split, check_depth, check_leaf, leaf_density, sample_leaf
 from .hsw import sh_leaf_corners
 
 DEFAULT_DEPTH = 12
-"""Measured (scripts/bench_sh_warp.py, Phong s=20 at 20 bands): mean relative pdf
-error 0.58 % at depth 10, 0.19 % at depth 12 for ~15 % more time; the
-bilinear leaf gained little (0.52 % at depth 10) and cost ~40 % more time."""
+"""Depth 12 with the uniform leaf: a few times smaller pdf error than depth 10 for
+a little more time, while the bilinear leaf gained little for much more time
+(docs/MEASUREMENTS.md, "SH warps")."""
 
 
 class StripState(NamedTuple):
@@ -103,8 +104,8 @@ class ArcState(NamedTuple):
 class ArcSplit(NamedTuple):
     left: mi.Float
     right: mi.Float
-    centre_left: tuple
-    """(cos, sin, half-width) of the left child's centre."""
+    centres: tuple
+    """(cos_left, sin_left, cos_right, sin_right) of the children's phi centres."""
 
 
 class AzimuthWeights:
@@ -122,19 +123,13 @@ class AzimuthWeights:
 
     def children(self, state: ArcState, level, phi0, phim, phi1) -> Split:
         h = math.pi / 2 ** (level + 1)
-        cos_c, sin_c = state.cos_c, state.sin_c
-        cos_l = dr.fma(cos_c, math.cos(h), sin_c * math.sin(h))
-        sin_l = dr.fma(sin_c, math.cos(h), -cos_c * math.sin(h))
-        left = contract_phi(self.row, phi_integrals_centred(cos_l, sin_l, h, self.order))
+        centres = child_phi_centres(state.cos_c, state.sin_c, level)
+        left = contract_phi(self.row, phi_integrals_centred(centres[0], centres[1], h, self.order))
         right = state.total - left
-        return Split((left, right), ArcSplit(left, right, (cos_l, sin_l, h)))
+        return Split((left, right), ArcSplit(left, right, centres))
 
     def advance(self, state: ArcState, pending: ArcSplit, level, upper) -> ArcState:
-        cos_l, sin_l, h = pending.centre_left
-        # Right centre = left centre + 2h.
-        cos_2h, sin_2h = math.cos(2 * h), math.sin(2 * h)
-        cos_r = dr.fma(cos_l, cos_2h, -sin_l * sin_2h)
-        sin_r = dr.fma(sin_l, cos_2h, cos_l * sin_2h)
+        cos_l, sin_l, cos_r, sin_r = pending.centres
         return ArcState(dr.select(upper, cos_r, cos_l), dr.select(upper, sin_r, sin_l),
                         dr.select(upper, pending.right, pending.left))
 
