@@ -15,7 +15,7 @@ from .command_line import DEFAULT_VARIANT, SAMPLERS, UsageError, set_variant
 from .sweep import command as sweep
 from .report import DEFAULT_CACHE_DIR
 
-COMPARE_RES = 240
+COMPARE_RES = 192
 
 
 def _positive(text: str) -> int:
@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     compare = sub.add_parser("compare", parents=[common],
                              help="render every method at equal samples and equal time, write a report")
-    # A realistic scene at 240 px wide keeps a direct pass well above per-launch overheads
+    # A realistic scene at 192 px wide keeps a direct pass well above per-launch overheads
     # (the verdict's budget caveat) while the default job stays near a minute on 2 cores.
     compare.set_defaults(res=COMPARE_RES)
     compare.add_argument("scenes", nargs="*", metavar="SCENE.xml",

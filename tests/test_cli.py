@@ -39,13 +39,29 @@ def expected_direct_methods():
     return [m.name for m in runnable]
 
 
+def test_report_breaks_the_error_down_per_material(tiny_report):
+    out, report = tiny_report
+    rows = report["scenes"][0]["runs"][0]["materials"]["direct"]
+    names = {row["name"] for row in rows}
+    assert "background" in names and len(names) >= 3  # the sphere, the ground, the sky
+    assert sum(row["pixel_share"] for row in rows) == pytest.approx(1.0)
+    for name in ("direct", "sh_direct"):
+        assert sum(row["error_share"][name] for row in rows) == pytest.approx(1.0)
+    glossy = next(row for row in rows if row["plugin"] == "RoughConductor")
+    assert glossy["best_mitsuba"]["equal_spp"] in ("direct", "direct_misc", "env_only")
+    assert glossy["variance_ratio"]["sh_direct"]["equal_spp"] > 0
+    with open(out / "index.html") as f:
+        assert "Per material" in f.read()
+
+
 def test_report_json_has_every_available_method_with_finite_metrics(tiny_report):
     _, report = tiny_report
     ggx = report["scenes"][0]
     assert ggx["scene"] == "sphere_ggx010" and ggx["has_envmap"]
     methods = ggx["runs"][0]["methods"]
     assert list(methods) == expected_direct_methods()
-    assert {"direct", "direct_misc", "env_only", "bsdf_only"} <= set(methods)
+    assert {"direct", "direct_misc", "env_only", "sh_direct"} <= set(methods)
+    assert "bsdf_only" not in methods  # runs only when named: never the best on an envmap
     for entry in methods.values():
         for kind in ("equal_spp", "equal_time"):
             e = entry[kind]

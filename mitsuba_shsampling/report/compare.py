@@ -45,7 +45,7 @@ class CompareSettings:
     """Settings of one ``compare`` run (the CLI options)."""
 
     out: str = "report"
-    res: int = 240
+    res: int = 192
     spp: int = 8
     passes: int = 32
     ref_spp: int = 1024
