@@ -3,12 +3,15 @@
     python scripts/results_table.py report_a/report.json report_b/report.json ...
     python scripts/results_table.py sweep_out/aggregate.json     # every finished cell of a sweep
 
-For every scene x sampler, the SH method is set against the *best* of
-Mitsuba's own direct-lighting strategies in the same run (the set of
-``mitsuba_shsampling.report.methods.mitsuba_strategies``, as in the verdict; lowest expected MSE at equal samples,
-highest efficiency = 1/(MSE x time) from the equal-sample passes, and from the
-renders at equal time), and against ``direct`` 1+1. "bias ok" is
-the report's bias test (p >= 1e-3), "tail ok" its tail comparison with ``direct``.
+    python scripts/results_table.py sweep_out/aggregate.json --family path   # sh_path against path
+
+For every scene x sampler, the project's plugin at its defaults (``sh_direct``, or ``sh_path``
+with ``--family path``) is set against the *best* of Mitsuba's own strategies of that family in
+the same run (the set of ``mitsuba_shsampling.report.methods.mitsuba_strategies``, as in the
+verdict; lowest expected MSE at equal samples, highest efficiency = 1/(MSE x time) from the
+equal-sample passes, and from the renders at equal time, with the verdict's 90 % paired
+bootstrap interval), and against ``direct`` 1+1 (or ``path``). "bias ok" is the report's bias
+test (p >= 1e-3), "tail ok" its tail comparison with ``direct`` (or ``path``).
 """
 
 from __future__ import annotations
@@ -17,10 +20,14 @@ import argparse
 import json
 import os
 
-from mitsuba_shsampling.report.methods import mitsuba_strategies
+from mitsuba_shsampling.report.methods import DIRECT, MULTI_BOUNCE, mitsuba_strategies
+from mitsuba_shsampling.report.verdict import ratio_with_interval
 from mitsuba_shsampling.sweep.aggregate import KIND as SWEEP_AGGREGATE
 
-SH_METHOD = "sh_direct"
+#: The plugin at its defaults, per family: what a user gets by switching the integrator.
+SH_METHOD = {DIRECT: "sh_direct", MULTI_BOUNCE: "sh_path"}
+#: Mitsuba's plain strategy of each family, the "/ direct" (or "/ path") columns.
+BASELINE = {DIRECT: "direct", MULTI_BOUNCE: "path"}
 
 
 def reports(path: str):
@@ -41,30 +48,37 @@ def envmap_name(report: dict) -> str:
     return os.path.splitext(os.path.basename(envmap))[0] if envmap else "built-in sunsky"
 
 
-def rows(report: dict):
+def rows(report: dict, family: str):
+    """One row per scene x sampler that ran the family's SH method."""
+    sh_method, baseline = SH_METHOD[family], BASELINE[family]
     for scene in report["scenes"]:
         for run in scene["runs"]:
             methods = run["methods"]
-            if SH_METHOD not in methods:
+            if sh_method not in methods:
                 continue
-            ours = methods[SH_METHOD]["equal_spp"]
-            mitsuba = mitsuba_strategies(methods)
+            ours = methods[sh_method]["equal_spp"]
+            mitsuba = mitsuba_strategies(methods, family)
             theirs = {n: methods[n]["equal_spp"] for n in mitsuba}
             best_mse = min(theirs, key=lambda n: theirs[n]["error"]["mse"])
             best_eff = max(theirs, key=lambda n: theirs[n]["efficiency"])
-            direct = theirs.get("direct")
-            timed = {n: methods[n]["equal_time"]["efficiency"] for n in (*mitsuba, SH_METHOD)
-                     if methods[n].get("equal_time")}
-            best_timed = max((n for n in timed if n != SH_METHOD), key=timed.get, default=None)
+            base = theirs.get(baseline)
+            timed = {n: methods[n]["equal_time"] for n in (*mitsuba, sh_method) if methods[n].get("equal_time")}
+            best_timed = max((n for n in timed if n != sh_method), key=lambda n: timed[n]["efficiency"],
+                             default=None)
+            timed_ratio = (ratio_with_interval("equal_time", timed[sh_method], timed[best_timed])
+                           if best_timed and sh_method in timed else (None, None, None))
             yield {
                 "map": envmap_name(report), "scene": scene["scene"], "sampler": run["sampler"],
-                "mse_vs_direct": ours["error"]["mse"] / direct["error"]["mse"] if direct else None,
+                "family": family, "method": sh_method,
+                "mse_vs_direct": ours["error"]["mse"] / base["error"]["mse"] if base else None,
                 "mse_vs_best": ours["error"]["mse"] / theirs[best_mse]["error"]["mse"], "best_mse": best_mse,
-                "eff_vs_direct": ours["efficiency"] / direct["efficiency"] if direct else None,
+                "eff_vs_direct": ours["efficiency"] / base["efficiency"] if base else None,
                 "eff_vs_best": ours["efficiency"] / theirs[best_eff]["efficiency"], "best_eff": best_eff,
-                "time_vs_direct": ours["time_s"] / direct["time_s"] if direct else None,
-                "timed_eff_vs_best": (timed[SH_METHOD] / timed[best_timed]
-                                      if best_timed and SH_METHOD in timed else None),
+                "time_vs_direct": ours["time_s"] / base["time_s"] if base else None,
+                "timed_eff_vs_best": timed_ratio[0], "timed_low": timed_ratio[1], "timed_high": timed_ratio[2],
+                "best_timed": best_timed,
+                "brightest_vs_direct": (ours["tail"]["max_pixel"] / base["tail"]["max_pixel"]
+                                        if base and base["tail"]["max_pixel"] else None),
                 "bias_ok": not ours["bias"]["flagged"],
                 "tail_ok": not ours["tail_worse_than_baseline"],
             }
@@ -77,17 +91,21 @@ def fmt(x, digits=2):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("reports", nargs="+")
+    parser.add_argument("--family", choices=(DIRECT, MULTI_BOUNCE), default=DIRECT,
+                        help="direct: sh_direct against Mitsuba's direct strategies; path: sh_path against path")
     parser.add_argument("--json", help="also write the rows as JSON")
     args = parser.parse_args()
-    table = [r for path in args.reports for report in reports(path) for r in rows(report)]
-    print("| map | scene | MSE / direct | MSE / best Mitsuba (which) | efficiency / direct "
-          "| efficiency / best Mitsuba (which) | equal-time efficiency / best Mitsuba | time / direct "
-          "| bias ok | tail ok |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    table = [r for path in args.reports for report in reports(path) for r in rows(report, args.family)]
+    base = BASELINE[args.family]
+    print(f"| map | scene | MSE / {base} | MSE / best Mitsuba (which) | efficiency / {base} "
+          f"| efficiency / best Mitsuba (which) | equal-time efficiency / best Mitsuba [90 % interval] (which) "
+          f"| time / {base} | brightest pixel / {base} | bias ok | tail ok |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in table:
         print(f"| {r['map']} | {r['scene']} | {fmt(r['mse_vs_direct'])} | {fmt(r['mse_vs_best'])} "
               f"({r['best_mse']}) | {fmt(r['eff_vs_direct'])} | {fmt(r['eff_vs_best'])} ({r['best_eff']}) "
-              f"| {fmt(r['timed_eff_vs_best'])} | {fmt(r['time_vs_direct'])} | {'yes' if r['bias_ok'] else 'NO'} "
+              f"| {fmt(r['timed_eff_vs_best'])} [{fmt(r['timed_low'])}, {fmt(r['timed_high'])}] ({r['best_timed']}) "
+              f"| {fmt(r['time_vs_direct'])} | {fmt(r['brightest_vs_direct'])} | {'yes' if r['bias_ok'] else 'NO'} "
               f"| {'yes' if r['tail_ok'] else 'NO'} |")
     if args.json:
         with open(args.json, "w") as f:

@@ -185,3 +185,12 @@ def verdict(report: dict) -> list[VerdictRow]:
                 rows.append(VerdictRow(scene=scene["scene"], sampler=run["sampler"], family=family,
                                        equal_spp=cell_spp, equal_time=cell_time, caveats=caveats))
     return rows
+
+
+def ratio_with_interval(kind: str, a: dict, b: dict) -> tuple[float, float, float]:
+    """(ratio, low, high): ``a``'s expected MSE over ``b``'s for ``kind`` "equal_spp", its
+    efficiency over ``b``'s for "equal_time" (entries of one run), with the verdict's 90 %
+    paired bootstrap interval over passes."""
+    statistic = _mse if kind == "equal_spp" else _efficiency
+    low, high = _paired_bootstrap(statistic, a, b)
+    return statistic(a) / statistic(b), low, high
