@@ -206,22 +206,22 @@ def sphere(name: str, centre: tuple[float, float, float], radius: float, bsdf: s
 """
 
 
-def box(name: str, transform: str, bsdf: str) -> str:
+def transformed(shape_type: str, name: str, transform: str, bsdf: str) -> str:
+    """A shape placed by its ``to_world`` transform (cube: [-1, 1]^3; rectangle: [-1, 1]^2 facing +z)."""
     return f"""
-    <shape type="cube" id="{name}">
+    <shape type="{shape_type}" id="{name}">
         <transform name="to_world">{transform}</transform>
         {bsdf}
     </shape>
 """
+
+
+def box(name: str, transform: str, bsdf: str) -> str:
+    return transformed("cube", name, transform, bsdf)
 
 
 def rectangle(name: str, transform: str, bsdf: str) -> str:
-    return f"""
-    <shape type="rectangle" id="{name}">
-        <transform name="to_world">{transform}</transform>
-        {bsdf}
-    </shape>
-"""
+    return transformed("rectangle", name, transform, bsdf)
 
 
 def material_studio() -> str:
