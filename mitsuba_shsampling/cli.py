@@ -137,12 +137,12 @@ def _print_summary(report: dict) -> None:
                           f"{'  BIAS?' if e['bias']['flagged'] else ''}"
                           f"{'  TAIL' if e['tail_worse_than_baseline'] else ''}")
             for family, rows in (run.get("materials") or {}).items():
-                project = list(rows[0]["variance_ratio"]) if rows else []
-                print(f"  per material ({family}): pixels, variance / best Mitsuba there at equal samples and "
+                project = list(rows[0]["error_ratio"]) if rows else []
+                print(f"  per material ({family}): pixels, squared error / best Mitsuba there at equal samples and "
                       f"equal time, share of the method's error")
                 for row in rows:
-                    cells = "  ".join(f"{n} {_fmt(row['variance_ratio'][n].get('equal_spp'), '.2f')} / "
-                                      f"{_fmt(row['variance_ratio'][n].get('equal_time'), '.2f')} "
+                    cells = "  ".join(f"{n} {_fmt(row['error_ratio'][n].get('equal_spp'), '.2f')} / "
+                                      f"{_fmt(row['error_ratio'][n].get('equal_time'), '.2f')} "
                                       f"({_fmt(row['error_share'].get(n), '.0%')})" for n in project)
                     print(f"    {row['name'][:22]:<23}{row['plugin'][:16]:<17}{row['pixel_share']:>6.1%}  "
                           f"vs {str(row['best_mitsuba'].get('equal_spp')):<12}{cells}")

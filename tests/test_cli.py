@@ -49,7 +49,7 @@ def test_report_breaks_the_error_down_per_material(tiny_report):
         assert sum(row["error_share"][name] for row in rows) == pytest.approx(1.0)
     glossy = next(row for row in rows if row["plugin"] == "RoughConductor")
     assert glossy["best_mitsuba"]["equal_spp"] in ("direct", "direct_misc", "env_only")
-    assert glossy["variance_ratio"]["sh_direct"]["equal_spp"] > 0
+    assert glossy["error_ratio"]["sh_direct"]["equal_spp"] > 0
     with open(out / "index.html") as f:
         assert "Per material" in f.read()
 

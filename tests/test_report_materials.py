@@ -47,13 +47,13 @@ def synthetic_passes(rng, scale: np.ndarray, passes: int = 400) -> np.ndarray:
     return 1.0 + scale[None, :, :, None] * rng.standard_normal((passes,) + scale.shape + (3,))
 
 
-def test_variance_ratio_compares_with_the_best_mitsuba_strategy_on_each_material():
+def test_error_ratio_compares_with_the_best_mitsuba_strategy_on_each_material():
     rng = np.random.default_rng(0)
     ids = np.zeros((4, 8), dtype=np.int64)
     ids[:, 4:] = 1
     left, right = ids == 0, ids == 1
     # direct is noisy on the left, env_only on the right; the project method halves the
-    # variance of the best one on the left and doubles it on the right.
+    # error of the best one on the left and doubles it on the right.
     sd = {"direct": np.where(left, 2.0, 1.0), "env_only": np.where(left, 1.0, 2.0),
           "sh_direct": np.where(left, np.sqrt(0.5), np.sqrt(2.0))}
     passes = {n: synthetic_passes(rng, s) for n, s in sd.items()}
@@ -62,13 +62,27 @@ def test_variance_ratio_compares_with_the_best_mitsuba_strategy_on_each_material
     by_name = {r.name: r for r in rows}
     assert by_name["glossy"].best_mitsuba == {"equal_spp": "env_only", "equal_time": "env_only"}
     assert by_name["ground"].best_mitsuba["equal_spp"] == "direct"
-    assert by_name["glossy"].variance_ratio["sh_direct"]["equal_spp"] == pytest.approx(0.5, rel=0.1)
-    assert by_name["ground"].variance_ratio["sh_direct"]["equal_time"] == pytest.approx(2.0, rel=0.1)
+    assert by_name["glossy"].error_ratio["sh_direct"]["equal_spp"] == pytest.approx(0.5, rel=0.1)
+    assert by_name["ground"].error_ratio["sh_direct"]["equal_time"] == pytest.approx(2.0, rel=0.1)
     assert by_name["glossy"].pixel_share == pytest.approx(0.5)
     # sh_direct's squared error: 0.5 on 16 pixels and 2 on 16 pixels, so a fifth on the glossy part.
     assert by_name["glossy"].error_share["sh_direct"] == pytest.approx(0.2, rel=0.1)
     for name in passes:
         assert sum(r.error_share[name] for r in rows) == pytest.approx(1.0)
+
+
+def test_a_strategy_that_leaves_a_material_dark_is_not_its_best():
+    """envmap-only sampling gives a smooth glass no light: noiseless, and wrong."""
+    rng = np.random.default_rng(2)
+    ids = np.zeros((2, 4), dtype=np.int64)
+    lit = synthetic_passes(rng, np.full((2, 4), 0.3))
+    dark = np.zeros_like(lit)
+    noisier = synthetic_passes(rng, np.full((2, 4), 0.6))
+    passes = {"direct": lit, "env_only": dark, "sh_direct": noisier}
+    (row,) = materials.breakdown(ids, [("glass", "SmoothDielectric")], passes, passes, np.ones((2, 4, 3)),
+                                 ["sh_direct"], ["direct", "env_only"])
+    assert row.best_mitsuba["equal_spp"] == "direct"
+    assert row.error_ratio["sh_direct"]["equal_spp"] == pytest.approx(4.0, rel=0.2)
 
 
 def test_materials_no_pixel_shows_are_left_out_and_the_background_is_a_row():
@@ -79,4 +93,16 @@ def test_materials_no_pixel_shows_are_left_out_and_the_background_is_a_row():
                                np.full((2, 2, 3), 0.5), ["sh_direct"], ["direct"])
     assert [r.name for r in rows] == [materials.BACKGROUND, "seen"]
     # No equal-time passes: no equal-time ratio, rather than a made-up one.
-    assert rows[0].variance_ratio["sh_direct"]["equal_time"] is None
+    assert rows[0].error_ratio["sh_direct"]["equal_time"] is None
+
+
+def test_materials_keep_their_shape_names_when_compare_rebuilds_the_envmap():
+    from mitsuba_shsampling import scenes
+    from mitsuba_shsampling.report import scene_setup
+
+    scene = scenes.load_scene(scenes.builtin_scenes()["material_studio"], res=32)
+    rebuilt = scene_setup.with_environment(scene, scenes.STUDIO_MAP, mis_compensation=True)
+    _, labels = materials.material_map(rebuilt, scene_setup.comparison_sensor(rebuilt, 32, "independent", 1))
+    names = {name for name, _ in labels}
+    # Inline BSDFs are named after their shape, named BSDFs after themselves.
+    assert {"ground", "gold_ball", "copper_ggx010", "brushed_aluminium"} <= names

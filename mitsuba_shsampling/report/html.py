@@ -160,11 +160,11 @@ def _metrics_table(run: dict) -> str:
 
 
 def _materials_table(rows: list[dict]) -> str:
-    """Per-material variance ratios against the best Mitsuba strategy there, and error shares."""
+    """Per-material squared-error ratios against the best Mitsuba strategy there, and error shares."""
     if not rows:
         return ""
-    project = list(rows[0]["variance_ratio"])
-    head = "".join(f"<th>{_e(n)}: variance / best Mitsuba, equal samples</th><th>{_e(n)}: equal time</th>"
+    project = list(rows[0]["error_ratio"])
+    head = "".join(f"<th>{_e(n)}: error / best Mitsuba, equal samples</th><th>{_e(n)}: equal time</th>"
                    f"<th>{_e(n)}: share of its error</th>" for n in project)
     out = [f"<table><tr><th>material</th><th>plugin</th><th>pixels</th><th>best Mitsuba strategy there "
            f"(equal samples / equal time)</th><th>its share of its error</th>{head}</tr>"]
@@ -173,7 +173,7 @@ def _materials_table(rows: list[dict]) -> str:
         cells = []
         for n in project:
             for kind in ("equal_spp", "equal_time"):
-                ratio = row["variance_ratio"][n].get(kind)
+                ratio = row["error_ratio"][n].get(kind)
                 style = ' class="bad"' if ratio is not None and ratio > 1 else ""
                 cells.append(f"<td{style}>{_num(ratio, 3)}</td>")
             cells.append(f"<td>{_num(row['error_share'].get(n), 2)}</td>")
@@ -206,7 +206,7 @@ def _scene_section(page: _Page, scene: dict) -> None:
         page.add(_metrics_table(run))
         for family, rows in (run.get("materials") or {}).items():
             page.add(f"<h4>Per material ({_e(family)} family): where each method wins and loses</h4>"
-                     "<p>Each pixel counts for the material its centre sees. A variance ratio below 1 "
+                     "<p>Each pixel counts for the material its centre sees. An error ratio below 1 "
                      "beats every Mitsuba strategy on that material's pixels (the best one there is "
                      "named); the error share is the part of the method's squared error, summed over "
                      "the image, that falls on the material.</p>")

@@ -10,11 +10,14 @@ Pixels whose centre sees no surface are the ``background``.
 For each material and method the breakdown gives, from the K passes of the
 comparison:
 
-- the per-pixel variance summed over the material's pixels, as a ratio to the best
-  Mitsuba strategy *on that material* (so a ratio below 1 means the method beats
-  every Mitsuba strategy there), at equal samples and at equal time;
-- the share of the method's image error (squared error against the reference,
-  summed over pixels) that the material carries.
+- the expected squared error (against the reference, averaged over the passes)
+  summed over the material's pixels, as a ratio to the best Mitsuba strategy *on
+  that material* (so a ratio below 1 means the method beats every Mitsuba strategy
+  there), at equal samples and at equal time. Squared error rather than variance,
+  because a strategy can be noiseless on a material by leaving it dark: envmap-only
+  sampling gives a smooth glass no light at all;
+- the share of the method's image error (the same squared error, summed over
+  pixels) that the material carries.
 
 The film filter spreads a pixel's samples over its neighbours, so a thin object's
 edge pixels mix materials; the per-pixel-centre assignment counts them where their
@@ -30,7 +33,6 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from . import metrics
 
 BACKGROUND = "background"
 
@@ -42,8 +44,8 @@ class MaterialEntry:
     :param name: the BSDF's id in the scene, or the ids of the shapes that use it.
     :param plugin: Mitsuba's class name of the BSDF (``RoughConductor``, ``BumpMap``, ...).
     :param pixel_share: fraction of the image's pixels whose centre sees it.
-    :param variance_ratio: method -> {"equal_spp": r, "equal_time": r}: the method's summed
-        per-pixel variance on these pixels over the best Mitsuba strategy's.
+    :param error_ratio: method -> {"equal_spp": r, "equal_time": r}: the method's expected
+        squared error summed over these pixels, over the best Mitsuba strategy's.
     :param best_mitsuba: {"equal_spp": name, "equal_time": name} of that strategy.
     :param error_share: method -> share of the method's equal-sample image error on these pixels.
     """
@@ -51,7 +53,7 @@ class MaterialEntry:
     name: str
     plugin: str
     pixel_share: float
-    variance_ratio: dict[str, dict[str, float | None]]
+    error_ratio: dict[str, dict[str, float | None]]
     best_mitsuba: dict[str, str | None]
     error_share: dict[str, float | None]
 
@@ -110,11 +112,15 @@ def breakdown(ids: np.ndarray, labels: list[tuple[str, str]], equal_spp: dict[st
     :param reference: (H, W, C) reference image of the methods' family.
     :param project, mitsuba: names of the project's and of Mitsuba's methods among them.
     """
-    variance = {kind: {n: metrics.pixel_variance(p) for n, p in passes.items()}
-                for kind, passes in (("equal_spp", equal_spp), ("equal_time", equal_time))}
-    squared_error = {n: np.nanmean(np.where(np.isfinite(p), (p - reference[None]) ** 2, np.nan), axis=(0, 3))
-                     for n, p in equal_spp.items()}
-    total_error = {n: float(np.nansum(e)) for n, e in squared_error.items()}
+    def squared_error(passes: np.ndarray) -> np.ndarray:
+        """(H, W) squared error against the reference, averaged over passes and channels."""
+        with np.errstate(invalid="ignore"):
+            error = np.where(np.isfinite(passes), (passes - reference[None]) ** 2, np.nan)
+        return np.nan_to_num(np.nanmean(error, axis=(0, 3)))
+
+    errors = {kind: {n: squared_error(p) for n, p in passes.items()}
+              for kind, passes in (("equal_spp", equal_spp), ("equal_time", equal_time))}
+    total_error = {n: float(e.sum()) for n, e in errors["equal_spp"].items()}
 
     entries = []
     names = [(BACKGROUND, "(environment)")] + labels
@@ -124,15 +130,15 @@ def breakdown(ids: np.ndarray, labels: list[tuple[str, str]], equal_spp: dict[st
             continue
         ratios: dict[str, dict[str, float | None]] = {n: {} for n in project}
         best: dict[str, str | None] = {}
-        for kind, maps in variance.items():
-            sums = {n: float(np.nansum(v[mask])) for n, v in maps.items()}
+        for kind, maps in errors.items():
+            sums = {n: float(e[mask].sum()) for n, e in maps.items()}
             candidates = [n for n in mitsuba if n in sums]
             best[kind] = min(candidates, key=lambda n: sums[n]) if candidates else None
             for n in project:
-                denominator = sums.get(best[kind], 0.0) if best[kind] else 0.0
+                denominator = sums[best[kind]] if best[kind] else 0.0
                 ratios[n][kind] = sums[n] / denominator if n in sums and denominator > 0 else None
-        shares = {n: (float(np.nansum(e[mask])) / total_error[n] if total_error[n] > 0 else None)
-                  for n, e in squared_error.items()}
+        shares = {n: float(e[mask].sum()) / total_error[n] if total_error[n] > 0 else None
+                  for n, e in errors["equal_spp"].items()}
         entries.append(MaterialEntry(name=name, plugin=plugin, pixel_share=float(mask.mean()),
-                                     variance_ratio=ratios, best_mitsuba=best, error_share=shares))
+                                     error_ratio=ratios, best_mitsuba=best, error_share=shares))
     return sorted(entries, key=lambda e: -e.pixel_share)

@@ -108,7 +108,10 @@ def with_environment(scene: mi.Scene, filename: str | None = None,
         elif emitter.get_shape() is None:
             objects[f"emitter_{i}"] = emitter
     for i, shape in enumerate(scene.shapes()):
-        objects[f"shape_{i}"] = shape  # carries its BSDF and area emitter
+        # Keyed by the shape's own id where it has one: load_dict names an object after its
+        # key, and reports name materials after their shapes.
+        key = shape.id() if shape.id() and shape.id() not in objects else f"shape_{i}"
+        objects[key] = shape  # carries its BSDF and area emitter
     for i, sensor in enumerate(scene.sensors()):
         objects[f"sensor_{i}"] = sensor
     return mi.load_dict(objects)
