@@ -245,3 +245,21 @@ def test_an_interrupted_reference_write_leaves_no_cache_entry_to_be_reused(tmp_p
     again = rendering.render_reference(scene_path, settings, "direct", 8, str(tmp_path))
     assert not first.cached and again.cached
     np.testing.assert_array_equal(first.chunks, again.chunks)
+
+
+def test_a_scene_with_a_hair_bsdf_compares_and_its_reference_key_follows_the_melanin(plain_scene):
+    """A hair BSDF set by melanin lists ``sigma_a`` without a value: the reference key skips it
+    and still changes with the concentration."""
+    hair = PLAIN_SCENE.replace('<bsdf type="roughconductor"><float name="alpha" value="0.2"/></bsdf>',
+                               '<bsdf type="hair"><float name="eumelanin" value="{melanin}"/></bsdf>')
+    assert hair != PLAIN_SCENE
+    (plain_scene / "hair.xml").write_text(hair.format(texture="checker.exr", melanin=1.3))
+    report = compare(plain_scene, "hair.xml", plain_scene / "out", "--sampler", "independent",
+                     methods="direct,sh_direct", passes="2")
+    assert set(report["scenes"][0]["runs"][0]["methods"]) == {"direct", "sh_direct"}
+    digests = []
+    for melanin in (1.3, 1.3, 0.4):
+        (plain_scene / "hair.xml").write_text(hair.format(texture="checker.exr", melanin=melanin))
+        path = str(plain_scene / "hair.xml")
+        digests.append(scene_setup.content_digest(path, scenes.load_scene(path)))
+    assert digests[0] == digests[1] != digests[2]

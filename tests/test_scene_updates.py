@@ -110,3 +110,29 @@ def test_after_an_update_sh_direct_agrees_with_mitsubas_direct(update):
     se = np.sqrt(sh.var(ddof=1) / PASSES + direct.var(ddof=1) / PASSES)
     z = (sh.mean() - direct.mean()) / se
     assert abs(z) < 5, f"image mean {sh.mean():.4g} vs direct {direct.mean():.4g}: {z:.1f} standard errors"
+
+
+def hair_scene():
+    """make_scene's map over a GGX sphere and a hair-BSDF sphere set by melanin concentration,
+    whose ``sigma_a`` parameter ``mi.traverse`` lists without a value."""
+    scene = make_scene()
+    return mi.load_dict({
+        "type": "scene", "sensor": scene.sensors()[0], "env": scene.environment(),
+        "s": {"type": "sphere", "center": [-0.6, 0, 0], "radius": 0.5,
+              "bsdf": {"type": "roughconductor", "alpha": 0.2}},
+        "h": {"type": "sphere", "center": [0.6, 0, 0], "radius": 0.5,
+              "bsdf": {"type": "hair", "eumelanin": 1.3}},
+    })
+
+
+def test_a_bsdf_parameter_without_a_value_is_skipped_and_its_other_parameters_still_key_the_state():
+    scene, integrator = hair_scene(), product_only()
+    image = np.array(mi.render(scene, integrator=integrator, spp=2))
+    assert np.all(np.isfinite(image)) and image.mean() > 0
+    first = integrator.scenes.get(scene)
+    assert integrator.scenes.get(scene) is first
+    assert first.active  # the GGX sphere is product sampled; the hair keeps Mitsuba's sampling
+    params = mi.traverse(scene)
+    params["h.bsdf.eumelanin"] = 0.4
+    params.update()
+    assert integrator.scenes.get(scene) is not first

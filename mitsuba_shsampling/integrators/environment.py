@@ -18,6 +18,7 @@ import mitsuba as mi
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
 from ..lobes.scene_lobes import registry_id
+from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from .estimators import environment_ray_target, is_emitter, mis_weight, mitsuba_emitter_sample
@@ -220,8 +221,7 @@ class SceneCache:
         values = []
         for obj in objects:
             if obj is not None:
-                params = mi.traverse(obj)
-                values += [params[key] for key in params.keys()]
+                values += [value for _, value in readable_parameters(mi.traverse(obj))]
         return values
 
     @staticmethod

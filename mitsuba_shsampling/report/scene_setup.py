@@ -28,6 +28,7 @@ import numpy as np
 import mitsuba as mi
 
 from ..scenes import SceneError, scene_envmap
+from ..traversal import readable_parameters
 
 #: Camera plugins whose parameters :func:`comparison_sensor` can carry over.
 SUPPORTED_CAMERAS = {"PerspectiveCamera": "perspective", "ThinLensCamera": "thinlens",
@@ -184,10 +185,10 @@ def content_digest(scene_path: str, scene: mi.Scene, extra_files: list[str] = ()
         with open(path, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 digest.update(block)
-    params = mi.traverse(scene)
     # Ties between renamed keys keep the traversal order, which is the scene's own.
-    entries = sorted((re.sub(r"object_\d+", "object", key), i, key) for i, key in enumerate(params.keys()))
-    for stable_key, _, key in entries:
+    entries = sorted((re.sub(r"object_\d+", "object", key), i, value)
+                     for i, (key, value) in enumerate(readable_parameters(mi.traverse(scene))))
+    for stable_key, _, value in entries:
         digest.update(stable_key.encode())
-        digest.update(_value_bytes(params[key]))
+        digest.update(_value_bytes(value))
     return digest.hexdigest()
