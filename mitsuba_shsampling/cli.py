@@ -115,7 +115,8 @@ def _compare(args) -> int:
 
 
 def _fmt(value, spec: str) -> str:
-    return "n/a" if value is None else format(value, spec)
+    """``value`` formatted by ``spec``; a missing one as ``n/a`` of the same width."""
+    return "n/a".rjust(int(spec.split(".")[0] or 0)) if value is None else format(value, spec)
 
 
 def _print_summary(report: dict) -> None:

@@ -263,3 +263,39 @@ def test_a_scene_with_a_hair_bsdf_compares_and_its_reference_key_follows_the_mel
         path = str(plain_scene / "hair.xml")
         digests.append(scene_setup.content_digest(path, scenes.load_scene(path)))
     assert digests[0] == digests[1] != digests[2]
+
+
+def test_an_all_black_environment_gives_a_verdict_with_n_a_ratios_and_a_caveat_saying_why(plain_scene):
+    write_image(plain_scene / "sky.exr", np.zeros((16, 32, 3)))
+    report = compare(plain_scene, "scene.xml", plain_scene / "out", "--sampler", "independent",
+                     methods="direct,env_only,sh_direct", passes="2")
+    (row,) = report["verdict"]
+    for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
+        assert row[kind]["ratio"] is row[kind]["low"] is row[kind]["high"] is None
+        assert any(c.startswith(f"at {title} the ratio of sh_direct to ") and "is n/a" in c
+                   for c in row["caveats"])
+    page = (plain_scene / "out" / "index.html").read_text()
+    assert "n/a" in page
+
+
+def test_a_pass_without_any_finite_pixel_makes_its_ratio_n_a_never_a_crash():
+    from mitsuba_shsampling.report import verdict
+
+    def entry(mse_per_pass):
+        finite = [v for v in mse_per_pass if v is not None]
+        return {"error": {"mse_per_pass": mse_per_pass, "mse": sum(finite) / len(finite) if finite else None,
+                          "non_finite": 12 * (len(mse_per_pass) - len(finite))},
+                "times_s": [0.1] * len(mse_per_pass), "spp": 8, "time_budget_s": 0.1, "budget_method": "direct",
+                "tail_worse_than_baseline": [], "bias": {"flagged": False, "p_value": 0.5}}
+
+    methods = {"direct": {"family": "direct", "equal_spp": entry([None, None, None]),
+                          "equal_time": entry([None, None, None])},
+               "sh_direct": {"family": "direct", "equal_spp": entry([0.2, 0.3, 0.1]),
+                             "equal_time": entry([0.2, None, 0.1])}}
+    report = {"scenes": [{"scene": "s", "path": "s.xml", "references": {"direct": {"mean_variance": None}},
+                          "runs": [{"sampler": "independent", "methods": methods}]}]}
+    (row,) = verdict.verdict(report)
+    assert row.equal_spp.winner == "sh_direct"  # the only finite MSE
+    assert np.isnan(row.equal_spp.ratio) and np.isnan(row.equal_time.ratio) and not row.equal_time.decided
+    assert any("non-finite pixel values" in c for c in row.caveats)
+    assert sum("is n/a" in c for c in row.caveats) == 2

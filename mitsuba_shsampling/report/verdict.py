@@ -19,6 +19,7 @@ Reference rows (the oracle) are no contenders: they appear in the caveats only.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -42,7 +43,9 @@ class VerdictCell:
 
     ``ratio`` is ``numerator``'s quantity over ``denominator``'s: MSE at equal samples (< 1:
     the numerator wins), efficiency at equal time (> 1: the numerator wins);
-    [``low``, ``high``] its bootstrap interval.
+    [``low``, ``high``] its bootstrap interval. All three are NaN (``n/a`` in the report) when
+    the ratio has no finite value: a zero MSE (an all-black environment renders every pixel
+    exactly) or a non-finite one (every pixel of a pass non-finite).
     """
 
     quantity: str
@@ -57,7 +60,7 @@ class VerdictCell:
     @property
     def decided(self) -> bool:
         """The interval excludes 1: the data decide between numerator and denominator."""
-        return not (self.low <= 1.0 <= self.high)
+        return math.isfinite(self.low) and math.isfinite(self.high) and not (self.low <= 1.0 <= self.high)
 
 
 @dataclasses.dataclass
@@ -70,18 +73,27 @@ class VerdictRow:
     caveats: list[str]
 
 
+def _ratio(x: float, y: float) -> float:
+    """x / y, NaN unless both are finite and y is positive."""
+    return x / y if math.isfinite(x) and math.isfinite(y) and y > 0 else math.nan
+
+
 def _paired_bootstrap(statistic, a: dict, b: dict, seed: int = 0) -> tuple[float, float]:
-    """Interval of statistic(a_resampled) / statistic(b_resampled), pass indices shared."""
+    """Interval of statistic(a_resampled) / statistic(b_resampled), pass indices shared
+    (NaN if any resampled ratio is: see :class:`VerdictCell`)."""
     k = min(len(a["error"]["mse_per_pass"]), len(b["error"]["mse_per_pass"]))
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, k, size=(BOOTSTRAP_RESAMPLES, k))
-    ratios = np.array([statistic(a, i) / statistic(b, i) for i in idx])
+    ratios = np.array([_ratio(statistic(a, i), statistic(b, i)) for i in idx])
+    if not np.all(np.isfinite(ratios)):
+        return math.nan, math.nan
     tail = (1 - INTERVAL) / 2
     return float(np.quantile(ratios, tail)), float(np.quantile(ratios, 1 - tail))
 
 
 def _mse(entry: dict, idx=None) -> float:
-    values = np.asarray(entry["error"]["mse_per_pass"])
+    # A pass whose every pixel was non-finite has no MSE (None in report.json): NaN here.
+    values = np.array([math.nan if v is None else v for v in entry["error"]["mse_per_pass"]], dtype=float)
     return float(values.mean() if idx is None else values[idx].mean())
 
 
@@ -89,19 +101,23 @@ def _efficiency(entry: dict, idx=None) -> float:
     times = np.asarray(entry["times_s"])
     time_s = float(np.median(times if idx is None else times[idx]))
     denom = _mse(entry, idx) * time_s
-    return 1.0 / denom if denom > 0 else float("inf")
+    return 1.0 / denom if denom > 0 else (math.inf if denom == 0 else math.nan)
 
 
 def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str]) -> VerdictCell:
     entries = {n: results[n][kind] for n in project + mitsuba}
     if kind == "equal_spp":
-        quantity, statistic = "MSE", _mse
-        order = sorted(entries, key=lambda n: _mse(entries[n]))
-        best_of = lambda names: min(names, key=lambda n: _mse(entries[n]))  # noqa: E731
+        quantity, statistic, sign = "MSE", _mse, 1.0
     else:
-        quantity, statistic = "efficiency", _efficiency
-        order = sorted(entries, key=lambda n: -_efficiency(entries[n]))
-        best_of = lambda names: max(names, key=lambda n: _efficiency(entries[n]))  # noqa: E731
+        quantity, statistic, sign = "efficiency", _efficiency, -1.0
+
+    def rank(name: str) -> tuple[bool, float]:
+        """Best first; a method whose statistic is NaN last."""
+        value = statistic(entries[name])
+        return (math.isnan(value), 0.0 if math.isnan(value) else sign * value)
+
+    order = sorted(entries, key=rank)
+    best_of = lambda names: min(names, key=rank)  # noqa: E731
     winner = order[0]
     if project and mitsuba:
         numerator, denominator = best_of(project), best_of(mitsuba)
@@ -111,7 +127,7 @@ def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str]) -> V
     low, high = _paired_bootstrap(statistic, a, b)
     return VerdictCell(quantity=quantity, winner=winner, winner_is_project=winner in project,
                        numerator=numerator, denominator=denominator,
-                       ratio=statistic(a) / statistic(b), low=low, high=high)
+                       ratio=_ratio(statistic(a), statistic(b)), low=low, high=high)
 
 
 def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders: list[str]) -> list[str]:
@@ -175,11 +191,17 @@ def verdict(report: dict) -> list[VerdictRow]:
                 cell_spp = _cell(results, "equal_spp", project, mitsuba)
                 cell_time = _cell(results, "equal_time", project, mitsuba)
                 winner_mse = results[cell_spp.winner]["equal_spp"]["error"]["mse"]
-                if ref and winner_mse > 0 and ref["mean_variance"] > MAX_REFERENCE_NOISE * winner_mse:
-                    caveats.append(f"the reference's own noise is {ref['mean_variance'] / winner_mse:.0%} "
+                ref_noise = ref["mean_variance"] if ref else None  # None: no finite reference pixel
+                if winner_mse and ref_noise and ref_noise > MAX_REFERENCE_NOISE * winner_mse:
+                    caveats.append(f"the reference's own noise is {ref_noise / winner_mse:.0%} "
                                    f"of the winner's MSE: every MSE ratio is pulled towards 1 (raise --ref-spp)")
                 for cell, title in ((cell_spp, "equal samples"), (cell_time, "equal time")):
-                    if not cell.decided:
+                    if not math.isfinite(cell.ratio):
+                        caveats.append(f"at {title} the ratio of {cell.numerator} to {cell.denominator} "
+                                       f"is n/a: the {cell.quantity} of one of them is zero or not finite (a black "
+                                       f"environment renders every pixel exactly; non-finite pixels are "
+                                       f"counted above)")
+                    elif not cell.decided:
                         caveats.append(f"at {title} the {INTERVAL:.0%} interval of {cell.numerator} "
                                        f"vs {cell.denominator} contains 1: no clear winner between them")
                 rows.append(VerdictRow(scene=scene["scene"], sampler=run["sampler"], family=family,
