@@ -17,7 +17,9 @@ sample count. The image is rendered in passes with consecutive seeds
 spp-weighted mean is written: the same estimate as one render with all the
 samples (for independent samplers; stratified ones stratify within a pass).
 The output format follows the extension: ``.exr`` (default, float32, the
-film's channels), ``.hdr``, ``.pfm``, or ``.png``/``.jpg`` (sRGB, 8 bit).
+film's channels), ``.hdr``, ``.pfm``, or ``.png``/``.jpg`` (sRGB, 8 bit); the
+extension and the output folder are checked before rendering, so that a render
+is never lost to a path it cannot be written to.
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ import time
 
 #: Largest number of samples per pixel rendered in one pass (one progress step).
 PASS_SPP = 16
+#: Image formats ``render`` writes, by extension; the 8-bit ones are written in sRGB.
+OUTPUT_FORMATS = (".exr", ".hdr", ".pfm", ".png", ".jpg", ".jpeg")
+LDR_FORMATS = (".png", ".jpg", ".jpeg")
 
 
 class RenderError(ValueError):
@@ -106,10 +111,24 @@ def write_image(path: str, image, film) -> None:
         bitmap = mi.Bitmap(image, layout.pixel_format(), names)
     else:
         bitmap = mi.Bitmap(image)
-    if os.path.splitext(path)[1].lower() in (".png", ".jpg", ".jpeg"):
+    if os.path.splitext(path)[1].lower() in LDR_FORMATS:
         rgb = mi.Bitmap.PixelFormat.RGBA if bitmap.has_alpha() else mi.Bitmap.PixelFormat.RGB
         bitmap = bitmap.convert(rgb, mi.Struct.Type.UInt8, srgb_gamma=True)
     bitmap.write(path)
+
+
+def check_output(path: str) -> None:
+    """RenderError unless an image can be written to ``path``: a format of
+    :data:`OUTPUT_FORMATS` and an existing, writable folder."""
+    extension = os.path.splitext(path)[1].lower()
+    if extension not in OUTPUT_FORMATS:
+        raise RenderError(f"cannot write '{path}': the output format follows the extension, one of "
+                          f"{', '.join(OUTPUT_FORMATS)}")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise RenderError(f"cannot write '{path}': the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK) or os.path.isdir(path):
+        raise RenderError(f"cannot write '{path}': not a writable file path")
 
 
 def render_file(args) -> dict:
@@ -120,6 +139,8 @@ def render_file(args) -> dict:
 
     path = resolve_scene(args.scene)
     defines = parse_defines(args.defines)
+    output = args.output or os.path.splitext(os.path.basename(path))[0] + ".exr"
+    check_output(output)
     try:
         scene = mi.load_file(path, **defines)
         integrator = mi.load_dict({"type": args.integrator}) if args.integrator else scene.integrator()
@@ -132,7 +153,6 @@ def render_file(args) -> dict:
     sensor = scene.sensors()[0]
     spp = args.spp or sensor.sampler().sample_count()
     plan = pass_plan(spp, args.passes)
-    output = args.output or os.path.splitext(os.path.basename(path))[0] + ".exr"
 
     total = None
     start = time.perf_counter()

@@ -64,6 +64,23 @@ def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path):
     assert message in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.parametrize("output, message", [
+    ("no_such_folder/x.exr", "the folder"),
+    ("x.tiff", "the output format follows the extension"),
+    ("x", "the output format follows the extension"),
+])
+def test_an_output_path_that_cannot_be_written_is_refused_before_rendering(output, message, capsys, tmp_path,
+                                                                          monkeypatch):
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered before checking the output path")
+
+    monkeypatch.setattr(mi, "render", no_render)
+    assert cli.main(["render", "sphere_diffuse", "-D", "res=4", "--spp", "1", "--no-progress",
+                     "-o", str(tmp_path / output)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+
+
 def test_a_plugin_parameter_error_in_the_scene_file_is_reported_in_one_line(tmp_path, capsys):
     scene = tmp_path / "bad.xml"
     scene.write_text('<scene version="3.0.0"><integrator type="sh_path">'
