@@ -58,7 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
                          help=f"comma-separated samplers among {', '.join(SAMPLERS)} (default %(default)s)")
     compare.add_argument("--seed", type=int, default=0, help="seed of the first pass (default %(default)s)")
     compare.add_argument("--max-depth", type=int, default=2,
-                         help="2: direct lighting; > 2 adds the multi-bounce path methods (default %(default)s)")
+                         help="Mitsuba's max_depth: 2 is direct lighting; above 2, or -1 (infinite), adds the "
+                              "multi-bounce methods path and sh_path at that depth (default %(default)s)")
     compare.add_argument("--convergence-max-spp", type=int, default=None,
                          help="largest spp of the convergence sweep (default 4 x spp, 0 disables)")
 
@@ -85,6 +86,11 @@ def _compare(args) -> int:
         raise UsageError(f"environment map not found: {args.envmap}")
     if args.passes < 2:
         raise UsageError("--passes must be at least 2 (variance and bias need several passes)")
+    if args.max_depth < 2 and args.max_depth != -1:
+        raise UsageError(f"--max-depth must be -1 (infinite, as Mitsuba's) or at least 2 (direct lighting), "
+                         f"got {args.max_depth}: below 2 no light is reflected to compare")
+    if args.methods is not None and not _split(args.methods):
+        raise UsageError("--methods names no method; leave it out to run every available method")
     samplers = _split(args.sampler) or []
     unknown = [s for s in samplers if s not in SAMPLERS]
     if unknown or not samplers:

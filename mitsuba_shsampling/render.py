@@ -54,7 +54,7 @@ def add_parser(subparsers, variant_default: str) -> argparse.ArgumentParser:
                         help="set the scene parameter $NAME (repeatable), as mitsuba -D")
     parser.add_argument("--integrator", metavar="TYPE",
                         help="integrator plugin replacing the scene's, e.g. sh_path")
-    parser.add_argument("--spp", type=int, help="samples per pixel (default: the scene's sampler)")
+    parser.add_argument("--spp", type=int, help="samples per pixel, >= 1 (default: the scene's sampler)")
     parser.add_argument("--passes", type=int,
                         help=f"render passes (default: enough for at most {PASS_SPP} spp each)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first pass (default %(default)s)")
@@ -79,7 +79,7 @@ def pass_plan(spp: int, passes: int | None = None) -> list[int]:
     """Samples per pixel of each pass: ``passes`` passes (default: ceil(spp /
     :data:`PASS_SPP`)) whose counts differ by at most one and sum to ``spp``."""
     if spp < 1:
-        raise RenderError(f"spp must be >= 1, got {spp}")
+        raise RenderError(f"--spp must be >= 1, got {spp}")
     passes = math.ceil(spp / PASS_SPP) if passes is None else passes
     if not 1 <= passes <= spp:
         raise RenderError(f"--passes must be in [1, spp = {spp}], got {passes}")
@@ -151,7 +151,7 @@ def render_file(args) -> dict:
     if integrator is None:
         raise RenderError(f"{path} has no integrator; choose one with --integrator")
     sensor = scene.sensors()[0]
-    spp = args.spp or sensor.sampler().sample_count()
+    spp = sensor.sampler().sample_count() if args.spp is None else args.spp
     plan = pass_plan(spp, args.passes)
 
     total = None

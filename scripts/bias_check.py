@@ -35,11 +35,11 @@ def main() -> None:
     mi.set_variant("llvm_ad_rgb")
     import mitsuba_shsampling  # noqa: F401  (registers the integrators)
     from mitsuba_shsampling.report import metrics
-    from mitsuba_shsampling.report.methods import available_methods
+    from mitsuba_shsampling.report.methods import available_methods, is_multi_bounce
     from mitsuba_shsampling.report.rendering import MethodRenderer, load_for_settings, reference_integrator
 
     try:
-        runnable, notes = available_methods([args.method], multi_bounce=args.max_depth > 2)
+        runnable, notes = available_methods([args.method], multi_bounce=is_multi_bounce(args.max_depth))
     except ValueError as err:
         parser.error(str(err))
     if not runnable:

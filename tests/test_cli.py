@@ -160,11 +160,28 @@ def test_missing_scene_file_exits_with_code_2_and_a_one_line_message():
     (["--methods", "direct,no_such_method"], "unknown method"),
     (["--sampler", "halton9"], "unknown sampler"),
     (["--passes", "1"], "at least 2"),
+    (["--methods", ""], "--methods names no method"),
+    (["--methods", " , "], "--methods names no method"),
+    (["--max-depth", "1"], "--max-depth must be -1 (infinite, as Mitsuba's) or at least 2"),
+    (["--max-depth", "-2"], "--max-depth must be -1 (infinite, as Mitsuba's) or at least 2"),
 ])
 def test_bad_options_exit_with_code_2_and_a_one_line_message(args, message, capsys):
     assert cli.main(["compare", *args, "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+def test_max_depth_minus_one_compares_the_multi_bounce_methods_at_infinite_depth(tmp_path):
+    code = cli.main(["compare", scenes.builtin_scenes()["sphere_diffuse"], "--out", str(tmp_path),
+                     "--res", "8", "--spp", "1", "--passes", "2", "--ref-spp", "8", "--max-depth", "-1",
+                     "--sampler", "independent", "--convergence-max-spp", "0",
+                     "--cache-dir", str(tmp_path / "cache"), "--no-progress"])
+    assert code == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    scene = report["scenes"][0]
+    assert {"path", "sh_path"} <= set(scene["runs"][0]["methods"])
+    assert scene["references"]["path"]["integrator"] == "path, max_depth -1"
+    assert "multi-bounce" in (tmp_path / "index.html").read_text()
 
 
 def test_envmap_swap_on_a_scene_without_envmap_is_a_usage_error(capsys, tmp_path):

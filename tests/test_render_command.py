@@ -57,6 +57,7 @@ def test_a_builtin_scene_name_and_an_xml_integrator_chosen_by_define_work(tmp_pa
     (["sphere_diffuse", "-D", "undeclared=1"], "Found unused parameters: - $undeclared=1"),
     (["sphere_diffuse", "--integrator", "sh_path", "--passes", "9", "--spp", "4"], "--passes must be in [1, spp = 4]"),
     (["sphere_diffuse", "--variant", "scalar_rgb"], "variant 'scalar_rgb' is not supported"),
+    (["sphere_diffuse", "--spp", "0"], "--spp must be >= 1, got 0"),
 ])
 def test_bad_input_is_one_line_and_exit_code_2(argv, message, capsys, tmp_path):
     assert cli.main(["render", *argv, "--no-progress", "-o", str(tmp_path / "x.exr")]) == 2

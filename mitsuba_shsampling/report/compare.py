@@ -32,7 +32,7 @@ import math
 from ..scenes import SceneError, scene_envmap
 from . import DEFAULT_CACHE_DIR, html, images, materials, metrics, verdict
 from .methods import (BASELINE, DIRECT, MITSUBA_METHODS, MULTI_BOUNCE_BASELINE, PROJECT_METHODS, Method,
-                      available_methods)
+                      available_methods, is_multi_bounce)
 from .figures import sampler_demo_figures
 from .plots import convergence_figure
 from .rendering import (SEED_CONVERGENCE, SEED_EQUAL_TIME, MethodRenderer, PassSet, Reference,
@@ -197,7 +197,7 @@ class SceneComparison:
 
     def methods(self) -> list[Method]:
         names = list(self.settings.methods) if self.settings.methods else None
-        chosen, notes = available_methods(names, multi_bounce=self.settings.max_depth > 2)
+        chosen, notes = available_methods(names, multi_bounce=is_multi_bounce(self.settings.max_depth))
         self.notes += notes
         runnable = []
         for method in chosen:
@@ -495,7 +495,7 @@ def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
     report["scenes"] = []
     for path in scene_paths:
         n_methods = len(available_methods(list(settings.methods) if settings.methods else None,
-                                          multi_bounce=settings.max_depth > 2)[0])
+                                          multi_bounce=is_multi_bounce(settings.max_depth))[0])
         with tqdm(total=count_renders(settings, n_methods), disable=not settings.progress,
                   desc=os.path.basename(path), unit="render", file=sys.stderr) as bar:
             report["scenes"].append(SceneComparison(path, settings, bar).run())

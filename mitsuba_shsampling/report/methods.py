@@ -37,6 +37,12 @@ MITSUBA = "mitsuba"
 REFERENCE = "reference"
 
 
+def is_multi_bounce(max_depth: int) -> bool:
+    """Whether a comparison at Mitsuba's ``max_depth`` adds the multi-bounce family: above 2
+    (2 is direct lighting: the camera ray and one bounce), or -1, Mitsuba's infinite depth."""
+    return max_depth == -1 or max_depth > 2
+
+
 @dataclasses.dataclass(frozen=True)
 class Method:
     """One rendering strategy of a comparison.
