@@ -18,7 +18,7 @@ mi.set_variant("llvm_ad_rgb")
 from mitsuba_shsampling import cli, scenes  # noqa: E402
 from mitsuba_shsampling.report.compare import CompareSettings, run_compare  # noqa: E402
 from mitsuba_shsampling.sweep import aggregate  # noqa: E402
-from mitsuba_shsampling.sweep.cells import cell_inputs, cell_key, run_cell  # noqa: E402
+from mitsuba_shsampling.sweep.cells import cell_inputs, cell_key, describe_failure, run_cell  # noqa: E402
 from mitsuba_shsampling.sweep.grid import GridError, load_grid  # noqa: E402
 from mitsuba_shsampling.sweep.run import (MIN_DRJIT_THREADS, oversubscribed_hosts,  # noqa: E402
                                           run_sweep, thread_plan)
@@ -236,6 +236,20 @@ def test_a_broken_scene_fails_alone_and_the_other_cells_complete(tmp_path, capsy
     assert "no_such_bsdf" in open(out / "index.html").read()
 
 
+def test_a_failed_cells_error_keeps_the_exception_type_its_whole_message_and_the_last_frames():
+    def load_material():
+        raise RuntimeError("cannot load scene.xml\nplugin 'no_such_bsdf' is not registered")
+
+    def load_scene():
+        load_material()
+
+    with pytest.raises(RuntimeError) as caught:
+        load_scene()
+    error = describe_failure(caught.value)
+    assert error.startswith("RuntimeError: cannot load scene.xml\nplugin 'no_such_bsdf' is not registered")
+    assert "in load_scene" in error and "in load_material" in error
+
+
 def test_aggregate_numbers_are_those_of_compare_on_the_same_cell(first_sweep, tmp_path):
     root, _, out, _ = first_sweep
     row = next(r for r in json.load(open(os.path.join(out, "aggregate.json")))["cells"]
@@ -248,6 +262,8 @@ def test_aggregate_numbers_are_those_of_compare_on_the_same_cell(first_sweep, tm
         eff["sh_direct"] / eff["direct"], rel=1e-12)
     for m in METHODS:
         assert row["methods"][m]["equal_spp_mse"] == stored[m]["equal_spp"]["error"]["mse"]
+        worse = [w for kind in ("equal_spp", "equal_time") for w in stored[m][kind]["tail_worse_than_baseline"]]
+        assert row["methods"][m]["tail_ok"] is (not worse)
 
     # ... and that report is what compare renders for the cell's settings (equal-spp renders
     # are seeded; equal-time spp and all timings depend on the run, so they are not compared).
@@ -305,11 +321,13 @@ def _report(methods: dict) -> dict:
     return {"scenes": [{"notes": [], "runs": [{"methods": methods}]}]}
 
 
-def _entry(per_pass, time=1.0, flagged=False, tail_worse=False):
-    """A report entry in compare's format: expected MSE over passes, efficiency, bias, tails."""
+def _entry(per_pass, time=1.0, flagged=False, tail_worse=()):
+    """A report entry in compare's format: expected MSE over passes, efficiency, bias, and the
+    tail statistics worse than the baseline's (a list of texts, empty when none is)."""
     mse = float(np.mean(per_pass))
     e = {"error": {"mse": mse, "mse_per_pass": list(per_pass)}, "time_s": time,
-         "efficiency": 1 / (mse * time), "bias": {"flagged": flagged}, "tail_worse_than_baseline": tail_worse}
+         "efficiency": 1 / (mse * time), "bias": {"flagged": flagged},
+         "tail_worse_than_baseline": list(tail_worse)}
     return {"equal_spp": e, "equal_time": e}
 
 
@@ -319,7 +337,7 @@ def test_summary_picks_the_best_mitsuba_strategy_and_reports_flags():
         "direct_misc": _entry([0.9, 1.1]),
         # A Mitsuba strategy like the others (report/methods.py), the worst of them here.
         "bsdf_only": _entry([4.0, 4.0]),
-        "sh_direct": _entry([0.4, 0.6], flagged=True, tail_worse=True),
+        "sh_direct": _entry([0.4, 0.6], flagged=True, tail_worse=["12 fireflies against direct's 0"]),
     }))
     assert summary["best_mitsuba_efficiency"] == summary["best_mitsuba_mse"] == "direct_misc"
     assert summary["winner"] == "sh_direct"

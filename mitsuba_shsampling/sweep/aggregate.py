@@ -90,6 +90,13 @@ def _flag(entry, key: str, inverted_key: str | None = None) -> bool | None:
     return None
 
 
+def _tail_ok(entry: dict) -> bool | None:
+    """No tail statistic worse than the baseline's: ``tail_worse_than_baseline`` lists the worse
+    ones (an empty list: none); None if the entry has no such field."""
+    worse = entry.get("tail_worse_than_baseline")
+    return not worse if isinstance(worse, (list, bool)) else None
+
+
 def _all(values: list[bool | None]) -> bool | None:
     """False if any is False, True if all are True, else None (unknown)."""
     return False if False in values else (True if all(v is True for v in values) else None)
@@ -155,8 +162,7 @@ def summarise_report(report: dict) -> dict:
             "efficiency_ratio_vs_best_mitsuba": eff_ratio, "efficiency_ratio_vs_best_mitsuba_err": eff_err,
             "time_ratio_vs_direct": time / direct_time if time is not None and direct_time else None,
             "bias_ok": _all([_flag(spp[name], "bias_ok", "bias"), _flag(eqt[name], "bias_ok", "bias")]),
-            "tail_ok": _all([None if not isinstance(e.get("tail_worse_than_baseline"), bool)
-                             else not e["tail_worse_than_baseline"] for e in (spp[name], eqt[name])]),
+            "tail_ok": _all([_tail_ok(e) for e in (spp[name], eqt[name])]),
         }
     flagged = [n for n, s in summary.items() if s["bias_ok"] is False]
     bias = ("flagged: " + ", ".join(flagged) if flagged

@@ -38,6 +38,8 @@ import mitsuba_shsampling
 from .grid import SCENE_MAP, Cell
 
 PACKAGE_DIR = os.path.dirname(os.path.abspath(mitsuba_shsampling.__file__))
+#: Innermost traceback frames a failed cell's ``error`` keeps (``traceback`` has them all).
+ERROR_FRAMES = 3
 
 
 @functools.lru_cache(maxsize=1)
@@ -154,7 +156,7 @@ class CellResult:
     :param status: ``"ok"`` or ``"failed"``.
     :param archive: zip of the compare report folder (``report.json``, ``index.html``, images);
         None if the cell failed.
-    :param error: one line, ``Type: message``, if the cell failed.
+    :param error: if the cell failed, :func:`describe_failure` of its exception.
     :param traceback: the full traceback if the cell failed.
     :param wall_time_s: wall time of the job on the worker.
     :param host: where it ran (host name and process id).
@@ -170,6 +172,14 @@ class CellResult:
     host: str = ""
     drjit_threads: int = 0
     code_version: str = ""
+
+
+def describe_failure(err: BaseException) -> str:
+    """``Type: message`` (every line of the message: Mitsuba's and a plugin's errors say what
+    went wrong after the first line), then the innermost :data:`ERROR_FRAMES` frames."""
+    frames = traceback.format_tb(err.__traceback__)[-ERROR_FRAMES:]
+    return ("".join(traceback.format_exception_only(type(err), err)).strip()
+            + ("\n" + "".join(frames).rstrip() if frames else ""))
 
 
 def use_variant(variant: str) -> None:
@@ -219,8 +229,7 @@ def run_cell(cell: Cell, cache_dir: str | None = None) -> CellResult:
             run_compare([scene], settings)
             archive = _zip_folder(out)
     except Exception as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
-        return CellResult("failed", error=f"{type(err).__name__}: {first}",
+        return CellResult("failed", error=describe_failure(err),
                           traceback=traceback.format_exc(), wall_time_s=time.perf_counter() - started,
                           host=where, drjit_threads=dr.thread_count(), code_version=code_version())
     return CellResult("ok", archive=archive, wall_time_s=time.perf_counter() - started, host=where,
