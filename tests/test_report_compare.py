@@ -76,11 +76,11 @@ def plain_scene(tmp_path):
 
 
 def compare(folder, scene, out, *extra, methods="direct", passes="4"):
-    """Run ``compare`` from ``folder`` with a relative scene path; returns the report dict."""
+    """Run ``compare`` from ``folder`` with a relative scene path (or a list of them); returns the report dict."""
     cwd = os.getcwd()
     os.chdir(folder)
     try:
-        code = cli.main(["compare", scene, "--out", str(out), "--res", "16", "--spp", "2",
+        code = cli.main(["compare", *([scene] if isinstance(scene, str) else scene), "--out", str(out), "--res", "16", "--spp", "2",
                          "--passes", passes, "--ref-spp", "32", "--methods", methods,
                          "--convergence-max-spp", "0", "--cache-dir", str(folder / "cache"),
                          "--no-progress", *extra])
@@ -299,3 +299,26 @@ def test_a_pass_without_any_finite_pixel_makes_its_ratio_n_a_never_a_crash():
     assert np.isnan(row.equal_spp.ratio) and np.isnan(row.equal_time.ratio) and not row.equal_time.decided
     assert any("non-finite pixel values" in c for c in row.caveats)
     assert sum("is n/a" in c for c in row.caveats) == 2
+
+
+def test_two_scenes_of_the_same_file_name_keep_their_own_images_and_names(plain_scene):
+    for folder, alpha in (("a", "0.2"), ("b", "0.6")):
+        (plain_scene / folder).mkdir()
+        xml = PLAIN_SCENE.format(texture="../checker.exr").replace('value="sky.exr"', 'value="../sky.exr"')
+        (plain_scene / folder / "scene.xml").write_text(xml.replace('value="0.2"/></bsdf>', f'value="{alpha}"/></bsdf>'))
+    report = compare(plain_scene, ["a/scene.xml", "b/scene.xml"], plain_scene / "out", "--sampler", "independent",
+                     methods="direct,env_only", passes="2")
+    assert [s["scene"] for s in report["scenes"]] == ["a/scene", "b/scene"]
+    assert [r["scene"] for r in report["verdict"]] == ["a/scene", "b/scene"]
+    files = [s["runs"][0]["methods"]["direct"]["equal_spp"]["files"]["first_pass"] for s in report["scenes"]]
+    references = [s["references"]["direct"]["file"] for s in report["scenes"]]
+    assert files[0] != files[1] and references[0] != references[1]
+    images = [np.array(mi.Bitmap(str(plain_scene / "out" / f))) for f in references]
+    assert not np.allclose(*images)  # each scene's own reference, neither overwritten
+
+
+def test_scene_labels_name_scenes_apart_by_the_fewest_parent_folders():
+    from mitsuba_shsampling.report.compare import scene_labels
+    assert scene_labels(["x/a/s.xml", "x/b/s.xml", "t.xml"]) == ["a/s", "b/s", "t"]
+    assert scene_labels(["p/a/s.xml", "q/a/s.xml", "q/b.xml"]) == ["p/a/s", "q/a/s", "b"]
+    assert scene_labels(["s.xml", "./s.xml"]) == ["s", "s_2"]

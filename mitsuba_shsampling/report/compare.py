@@ -157,12 +157,38 @@ def save_passes(folder: str, tag: str, passes: PassSet, exposure: float, root: s
             "mean": os.path.relpath(stem + "_mean.exr", root)}
 
 
-class SceneComparison:
-    """Runs one scene: references per family, then every sampler and method."""
+def scene_labels(paths: list[str]) -> list[str]:
+    """A name per scene for the tables and the report's folders: the file's stem, with as many
+    parent folders as tell apart files of the same stem (``a/scene``, ``b/scene``); the same
+    file given again gets ``_2``, ``_3``, ..."""
+    full = [os.path.splitext(os.path.abspath(p))[0].split(os.sep) for p in paths]
+    depth = [1] * len(paths)
+    while True:
+        labels = ["/".join(parts[-d:]) for parts, d in zip(full, depth)]
+        clashes = [i for i, label in enumerate(labels)
+                   if any(labels[j] == label and full[j] != full[i] for j in range(len(paths)))]
+        if not clashes:
+            break
+        for i in clashes:
+            depth[i] += 1
+    counts: dict[str, int] = {}
+    unique = []
+    for label in labels:
+        counts[label] = counts.get(label, 0) + 1
+        unique.append(label if counts[label] == 1 else f"{label}_{counts[label]}")
+    return unique
 
-    def __init__(self, scene_path: str, settings: CompareSettings, bar: tqdm):
+
+class SceneComparison:
+    """Runs one scene: references per family, then every sampler and method.
+
+    :param name: the scene's name in the report (:func:`scene_labels`; default: the file's stem),
+        also its folder under the report folder.
+    """
+
+    def __init__(self, scene_path: str, settings: CompareSettings, bar: tqdm, name: str | None = None):
         self.path = os.path.abspath(scene_path)
-        self.name = os.path.splitext(os.path.basename(scene_path))[0]
+        self.name = name or os.path.splitext(os.path.basename(scene_path))[0]
         self.settings = settings
         self.bar = bar
         self.root = os.path.abspath(settings.out)
@@ -493,12 +519,12 @@ def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
     report = environment_info()
     report["settings"] = settings
     report["scenes"] = []
-    for path in scene_paths:
+    for path, name in zip(scene_paths, scene_labels(scene_paths)):
         n_methods = len(available_methods(list(settings.methods) if settings.methods else None,
                                           multi_bounce=is_multi_bounce(settings.max_depth))[0])
         with tqdm(total=count_renders(settings, n_methods), disable=not settings.progress,
                   desc=os.path.basename(path), unit="render", file=sys.stderr) as bar:
-            report["scenes"].append(SceneComparison(path, settings, bar).run())
+            report["scenes"].append(SceneComparison(path, settings, bar, name).run())
     report["total_time_s"] = time.time() - started
     report = serialise(report)
     report["verdict"] = serialise(verdict.verdict(report))
