@@ -155,11 +155,13 @@ def _print_summary(report: dict) -> None:
                           f"vs {str(row['best_mitsuba'].get('equal_spp')):<12}{cells}")
     print("\nverdict:")
     for row in report["verdict"]:
-        for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
-            c = row[kind]
-            print(f"  {row['scene']} [{row['sampler']}, {row['family']}] {title}: {c['winner']} wins; {c['numerator']} / "
-                  f"{c['denominator']} {c['quantity']} x{_fmt(c['ratio'], '.3g')} "
-                  f"[{_fmt(c['low'], '.3g')}, {_fmt(c['high'], '.3g')}]")
+        print(f"  {row['scene']} [{row['sampler']}, {row['family']}]")
+        for label, line in [(row["configuration"], row)] + [(o["configuration"], o) for o in row["others"]]:
+            for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
+                c = line[kind]
+                print(f"    {title}: {label or c['numerator']} / {c['denominator']} {c['quantity']} "
+                      f"x{_fmt(c['ratio'], '.3g')} [{_fmt(c['low'], '.3g')}, {_fmt(c['high'], '.3g')}] "
+                      f"({c['winner']} best of all)")
         for caveat in row["caveats"]:
             print(f"    caveat: {caveat}")
 

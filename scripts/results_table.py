@@ -20,12 +20,10 @@ import argparse
 import json
 import os
 
-from mitsuba_shsampling.report.methods import DIRECT, MULTI_BOUNCE, mitsuba_strategies
+from mitsuba_shsampling.report.methods import DEFAULT_PLUGIN_METHOD, DIRECT, MULTI_BOUNCE, mitsuba_strategies
 from mitsuba_shsampling.report.verdict import ratio_with_interval
 from mitsuba_shsampling.sweep.aggregate import KIND as SWEEP_AGGREGATE
 
-#: The plugin at its defaults, per family: what a user gets by switching the integrator.
-SH_METHOD = {DIRECT: "sh_direct", MULTI_BOUNCE: "sh_path"}
 #: Mitsuba's plain strategy of each family, the "/ direct" (or "/ path") columns.
 BASELINE = {DIRECT: "direct", MULTI_BOUNCE: "path"}
 
@@ -50,7 +48,7 @@ def envmap_name(report: dict) -> str:
 
 def rows(report: dict, family: str):
     """One row per scene x sampler that ran the family's SH method."""
-    sh_method, baseline = SH_METHOD[family], BASELINE[family]
+    sh_method, baseline = DEFAULT_PLUGIN_METHOD[family], BASELINE[family]
     for scene in report["scenes"]:
         for run in scene["runs"]:
             methods = run["methods"]

@@ -322,3 +322,31 @@ def test_scene_labels_name_scenes_apart_by_the_fewest_parent_folders():
     assert scene_labels(["x/a/s.xml", "x/b/s.xml", "t.xml"]) == ["a/s", "b/s", "t"]
     assert scene_labels(["p/a/s.xml", "q/a/s.xml", "q/b.xml"]) == ["p/a/s", "q/a/s", "b"]
     assert scene_labels(["s.xml", "./s.xml"]) == ["s", "s_2"]
+
+
+def verdict_entry(mse_per_pass, time_s=0.1, tail_worse=()):
+    """A report.json method entry as the verdict reads it (both comparisons alike)."""
+    kind = {"error": {"mse_per_pass": list(mse_per_pass), "mse": float(np.mean(mse_per_pass)), "non_finite": 0},
+            "times_s": [time_s] * len(mse_per_pass), "time_s": time_s, "spp": 8, "time_budget_s": 0.1,
+            "budget_method": "direct", "tail_worse_than_baseline": list(tail_worse),
+            "bias": {"flagged": False, "p_value": 0.5}}
+    return {"equal_spp": kind, "equal_time": dict(kind)}
+
+
+def test_the_verdicts_first_line_is_the_plugin_at_its_defaults_against_the_best_mitsuba_strategy():
+    from mitsuba_shsampling.report.methods import METHODS
+    from mitsuba_shsampling.report.verdict import verdict
+
+    mse = {"direct": 1.0, "direct_misc": 0.8, "bsdf_only": 3.0, "sh_direct": 0.9, "sh_product_only": 0.3}
+    methods = {n: {"family": "direct", "integrator": next(m.integrator for m in METHODS if m.name == n),
+                   **verdict_entry([v, 1.1 * v, 0.9 * v])} for n, v in mse.items()}
+    report = {"scenes": [{"scene": "s", "path": "s.xml", "references": {},
+                          "runs": [{"sampler": "independent", "methods": methods}]}]}
+    (row,) = verdict(report)
+    for cell in (row.equal_spp, row.equal_time):
+        assert (cell.numerator, cell.denominator, cell.winner) == ("sh_direct", "direct_misc", "sh_product_only")
+    assert row.configuration == "sh_direct (defaults)"
+    (other,) = row.others
+    assert other.method == "sh_product_only" and other.equal_spp.denominator == "direct_misc"
+    assert other.configuration == "sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false)"
+    assert other.equal_spp.ratio == pytest.approx(0.3 / 0.8)

@@ -65,32 +65,41 @@ class _Page:
                 f'<figcaption>{cap}</figcaption></figure>')
 
 
-def _cell_text(cell: dict) -> str:
-    ratio = (f"{_e(cell['numerator'])} has {_num(cell['ratio'], 3)}x the {cell['quantity']} of "
-             f"{_e(cell['denominator'])} [{_num(cell['low'], 3)}, {_num(cell['high'], 3)}]")
-    return f"<b>{_e(cell['winner'])}</b><br><small>{ratio}</small>"
+def _cell_html(cell: dict, label: str | None) -> str:
+    """A verdict cell: the numerator (named ``label``) against the denominator, highlighted when
+    the numerator is the better of the two; the overall winner below."""
+    better = cell["ratio"] is not None and (cell["ratio"] < 1 if cell["quantity"] == "MSE" else cell["ratio"] > 1)
+    best = "lowest MSE" if cell["quantity"] == "MSE" else "highest efficiency"
+    return (f'<td class="{"win" if better else "name"}"><b>{_e(label or cell["numerator"])}</b><br>'
+            f'<small>{_num(cell["ratio"], 3)}x the {cell["quantity"]} of {_e(cell["denominator"])} '
+            f'[{_num(cell["low"], 3)}, {_num(cell["high"], 3)}]; {best} of all: {_e(cell["winner"])}</small></td>')
 
 
 def _verdict_section(report: dict) -> str:
     rows = report["verdict"]
     if not rows:
         return "<p>No verdict: fewer than two methods ran in every scene.</p>"
-    head = ("<tr><th>scene</th><th>sampler</th><th>lighting</th><th>equal samples: winner (lowest expected MSE)</th>"
-            "<th>equal time: winner (highest efficiency)</th><th>caveats</th></tr>")
-    body = []
+    head = ("<tr><th>scene</th><th>sampler</th><th>lighting</th><th>equal samples (expected MSE)</th>"
+            "<th>equal time (efficiency)</th><th>caveats</th></tr>")
+    body, others = [], []
     for r in rows:
-        cells = []
-        for kind in ("equal_spp", "equal_time"):
-            cells.append(f'<td class="win">{_cell_text(r[kind])}</td>')
         lighting = "direct" if r["family"] == DIRECT else "multi-bounce"
-        body.append(f'<tr><td>{_e(r["scene"])}</td><td>{_e(r["sampler"])}</td><td>{lighting}</td>'
-                    f'{"".join(cells)}<td>{len(r["caveats"])}</td></tr>')
+        where = f'<td>{_e(r["scene"])}</td><td>{_e(r["sampler"])}</td><td>{lighting}</td>'
+        cells = "".join(_cell_html(r[kind], r.get("configuration")) for kind in ("equal_spp", "equal_time"))
+        body.append(f'<tr>{where}{cells}<td>{len(r["caveats"])}</td></tr>')
+        for other in r.get("others") or []:
+            cells = "".join(_cell_html(other[kind], other["configuration"]) for kind in ("equal_spp", "equal_time"))
+            others.append(f"<tr>{where}{cells}</tr>")
     table = f'<table id="verdict">{head}{"".join(body)}</table>'
-    legend = (f"<p>The winner of each comparison is highlighted. Below it: the project's best method "
-              f"over the best of Mitsuba's own strategies in the same run (or, with no project method, "
-              f"the winner over the runner-up): MSE ratio at equal samples (below 1: the first is "
-              f"better), efficiency ratio 1/(MSE x time) at equal time (above 1: the first is better); "
-              f"in brackets the {verdict.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
+    legend = (f"<p>First: the project's plugin at its defaults (what switching the integrator gives) "
+              f"against the best of Mitsuba's own strategies in the same run (or, with no project "
+              f"method, the winner against the runner-up), highlighted when it is the better of the two: "
+              f"MSE ratio at equal samples (below 1: the first is better), efficiency ratio "
+              f"1/(MSE x time) at equal time (above 1: the first is better); in brackets the "
+              f"{verdict.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
+    if others:
+        legend += ('<p>The project\'s other configurations, each against the same best Mitsuba strategy:</p>'
+                   f'<table id="verdict-others">{head.replace("<th>caveats</th>", "")}{"".join(others)}</table>')
     caveats = "".join(f"<li><b>{_e(r['scene'])}, {_e(r['sampler'])}"
                       f"{'' if r['family'] == DIRECT else ', multi-bounce'}</b>: {_e(c)}</li>"
                       for r in rows for c in r["caveats"])

@@ -125,6 +125,9 @@ METHODS: tuple[Method, ...] = (
 #: The method every equal-time budget is measured against.
 BASELINE = "direct"
 MULTI_BOUNCE_BASELINE = "path"
+#: Per family, the project's plugin at its defaults: what a user gets by switching the
+#: integrator, and so the verdict's first line.
+DEFAULT_PLUGIN_METHOD = {DIRECT: "sh_direct", MULTI_BOUNCE: "sh_path"}
 
 #: Method names by role.
 PROJECT_METHODS = frozenset(m.name for m in METHODS if m.role == PROJECT)

@@ -6,11 +6,15 @@ be recomputed from a saved report. For each scene, sampler and method family:
 - **equal samples**: lowest expected MSE (mean over passes of each pass's MSE);
 - **equal time**: highest efficiency 1 / (MSE x time per pass) of the equal-time renders.
 
-The factor set against the winner is always *the project's best method over the
+The factor set against the winner is *the project's plugin at its defaults over the
 best of Mitsuba's own strategies* (the roles of :mod:`.methods`: every Mitsuba method of
 the family that ran, ``direct``, ``direct`` with ``mis_compensation``, envmap-only and
-BSDF-only for direct lighting, ``path`` for multi-bounce), or, when no project method
-ran, the winner over the runner-up. Its interval is a paired
+BSDF-only for direct lighting, ``path`` for multi-bounce): what a user gets by switching
+the integrator (:data:`.methods.DEFAULT_PLUGIN_METHOD`; the first project method when
+that one did not run). The project's other rows follow, each against the same best
+Mitsuba strategy and named by its plugin parameters (``sh_direct (emitter_samples=2,
+bsdf_samples=0, ...)``). When no project method ran, the factor is the winner over the
+runner-up. Each interval is a paired
 bootstrap over passes: pass k of both methods is resampled together (the passes
 are i.i.d. across k; methods share seeds, so pairing also keeps their correlation).
 Reference rows (the oracle) are no contenders: they appear in the caveats only.
@@ -23,7 +27,7 @@ import math
 
 import numpy as np
 
-from .methods import MITSUBA, PROJECT, REFERENCE, role_of
+from .methods import DEFAULT_PLUGIN_METHOD, MITSUBA, PROJECT, REFERENCE, role_of
 from .metrics import BIAS_ALPHA, TAIL_PERCENTILE
 
 #: Bootstrap resamples and the two-sided coverage of the interval.
@@ -64,13 +68,40 @@ class VerdictCell:
 
 
 @dataclasses.dataclass
+class VerdictOther:
+    """Another project row of a verdict row: its method, plugin configuration and cells."""
+
+    method: str
+    configuration: str
+    equal_spp: VerdictCell
+    equal_time: VerdictCell
+
+
+@dataclasses.dataclass
 class VerdictRow:
+    """One scene, sampler and family. ``configuration`` is how a user writes the first line's
+    project method (None when no project method ran); ``others`` the project's other rows."""
+
     scene: str
     sampler: str
     family: str
     equal_spp: VerdictCell
     equal_time: VerdictCell
     caveats: list[str]
+    configuration: str | None = None
+    others: list[VerdictOther] = dataclasses.field(default_factory=list)
+
+
+def configuration(name: str, result: dict, family: str) -> str:
+    """The plugin configuration of method ``name`` as a user writes it: ``sh_direct (defaults)``
+    for :data:`.methods.DEFAULT_PLUGIN_METHOD`, else the plugin and the parameters the method
+    sets, ``sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false)``."""
+    integrator = dict(result.get("integrator") or {"type": name})
+    plugin = integrator.pop("type", name)
+    if name == DEFAULT_PLUGIN_METHOD.get(family) or not integrator:
+        return f"{plugin} (defaults)"
+    params = ", ".join(f"{k}={str(v).lower() if isinstance(v, bool) else v}" for k, v in integrator.items())
+    return f"{plugin} ({params})"
 
 
 def _ratio(x: float, y: float) -> float:
@@ -104,7 +135,10 @@ def _efficiency(entry: dict, idx=None) -> float:
     return 1.0 / denom if denom > 0 else (math.inf if denom == 0 else math.nan)
 
 
-def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str]) -> VerdictCell:
+def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str],
+          lead: str | None = None) -> VerdictCell:
+    """The contest of ``kind``: its winner, and ``lead`` (default: the best project method)
+    over the best Mitsuba strategy, or with no project method the winner over the runner-up."""
     entries = {n: results[n][kind] for n in project + mitsuba}
     if kind == "equal_spp":
         quantity, statistic, sign = "MSE", _mse, 1.0
@@ -120,7 +154,7 @@ def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str]) -> V
     best_of = lambda names: min(names, key=rank)  # noqa: E731
     winner = order[0]
     if project and mitsuba:
-        numerator, denominator = best_of(project), best_of(mitsuba)
+        numerator, denominator = lead or best_of(project), best_of(mitsuba)
     else:
         numerator, denominator = winner, order[1] if len(order) > 1 else winner
     a, b = entries[numerator], entries[denominator]
@@ -188,8 +222,14 @@ def verdict(report: dict) -> list[VerdictRow]:
                 baseline = results[names[0]]["equal_time"]["budget_method"]
                 caveats = _caveats(scene, run, names, baseline, contenders)
                 ref = scene["references"].get(family)
-                cell_spp = _cell(results, "equal_spp", project, mitsuba)
-                cell_time = _cell(results, "equal_time", project, mitsuba)
+                lead = DEFAULT_PLUGIN_METHOD.get(family) if DEFAULT_PLUGIN_METHOD.get(family) in project \
+                    else (project[0] if project else None)
+                cell_spp = _cell(results, "equal_spp", project, mitsuba, lead)
+                cell_time = _cell(results, "equal_time", project, mitsuba, lead)
+                others = [VerdictOther(method=n, configuration=configuration(n, results[n], family),
+                                       equal_spp=_cell(results, "equal_spp", project, mitsuba, n),
+                                       equal_time=_cell(results, "equal_time", project, mitsuba, n))
+                          for n in project if n != lead and mitsuba]
                 winner_mse = results[cell_spp.winner]["equal_spp"]["error"]["mse"]
                 ref_noise = ref["mean_variance"] if ref else None  # None: no finite reference pixel
                 if winner_mse and ref_noise and ref_noise > MAX_REFERENCE_NOISE * winner_mse:
@@ -205,7 +245,10 @@ def verdict(report: dict) -> list[VerdictRow]:
                         caveats.append(f"at {title} the {INTERVAL:.0%} interval of {cell.numerator} "
                                        f"vs {cell.denominator} contains 1: no clear winner between them")
                 rows.append(VerdictRow(scene=scene["scene"], sampler=run["sampler"], family=family,
-                                       equal_spp=cell_spp, equal_time=cell_time, caveats=caveats))
+                                       equal_spp=cell_spp, equal_time=cell_time, caveats=caveats,
+                                       configuration=(configuration(lead, results[lead], family)
+                                                      if lead and mitsuba else None),
+                                       others=others))
     return rows
 
 
@@ -215,4 +258,4 @@ def ratio_with_interval(kind: str, a: dict, b: dict) -> tuple[float, float, floa
     paired bootstrap interval over passes."""
     statistic = _mse if kind == "equal_spp" else _efficiency
     low, high = _paired_bootstrap(statistic, a, b)
-    return statistic(a) / statistic(b), low, high
+    return _ratio(statistic(a), statistic(b)), low, high

@@ -14,7 +14,7 @@ of older or newer compare versions still summarise):
   (``error.mse_per_pass``): delta method over the paired passes, wall-time noise not included;
 - the bias status (``bias.flagged``, or ``bias_ok`` of older reports) and the tail status
   (``tail_worse_than_baseline``) of the equal-spp and equal-time renders;
-- the report's own verdict where it has one: the project's best method against the best of
+- the report's own verdict where it has one: the project's plugin at its defaults against the best of
   Mitsuba's strategies, ratio and 90 % paired-bootstrap interval.
 
 Heat maps (scene x map, one per sampler) show the equal-time efficiency ratio of
