@@ -350,3 +350,19 @@ def test_the_verdicts_first_line_is_the_plugin_at_its_defaults_against_the_best_
     assert other.method == "sh_product_only" and other.equal_spp.denominator == "direct_misc"
     assert other.configuration == "sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false)"
     assert other.equal_spp.ratio == pytest.approx(0.3 / 0.8)
+
+
+def test_heavy_tails_are_flagged_only_for_the_methods_the_verdict_shows():
+    from mitsuba_shsampling.report.verdict import verdict
+
+    methods = {"direct": verdict_entry([1.0, 1.1]), "direct_misc": verdict_entry([0.8, 0.9]),
+               "bsdf_only": verdict_entry([3.0, 3.3], tail_worse=["9 fireflies against direct's 0"])}
+    for entry in methods.values():
+        entry["family"] = "direct"
+    report = {"scenes": [{"scene": "s", "path": "s.xml", "references": {},
+                          "runs": [{"sampler": "independent", "methods": methods}]}]}
+    (row,) = verdict(report)
+    assert not any("heavy tails" in c for c in row.caveats)
+    methods["direct_misc"]["equal_time"]["tail_worse_than_baseline"] = ["brightest pixel 9 > 3 x direct's 2"]
+    (row,) = verdict(report)
+    assert [c for c in row.caveats if "heavy tails" in c][0].startswith("heavy tails: direct_misc is worse")

@@ -76,5 +76,6 @@ def test_caveats_need_no_row_of_a_baseline_that_failed_at_equal_time():
     """A baseline dropped in the equal-time phase leaves the others' budgets with them."""
     from mitsuba_shsampling.report.verdict import _caveats
     run = {"methods": {"sh_direct": row(0.005), "direct_misc": row(0.005)}}
-    notes = _caveats({}, run, ["sh_direct", "direct_misc"], "direct", ["sh_direct", "direct_misc"])
+    notes = _caveats({}, run, ["sh_direct", "direct_misc"], "direct", ["sh_direct", "direct_misc"],
+                     ["sh_direct", "direct_misc"])
     assert any("time budget too small" in n for n in notes)

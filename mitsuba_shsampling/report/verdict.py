@@ -164,9 +164,12 @@ def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str],
                        ratio=_ratio(statistic(a), statistic(b)), low=low, high=high)
 
 
-def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders: list[str]) -> list[str]:
+def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders: list[str],
+             shown: list[str]) -> list[str]:
     """Notes on the run's methods ``names``; the equal-time resolution only of the ``contenders``
-    (a reference row at 1 spp within the baseline's time is what it costs, not a coarse budget)."""
+    (a reference row at 1 spp within the baseline's time is what it costs, not a coarse budget);
+    heavy tails only of the methods the verdict ``shown`` (a baseline nobody would choose, such as
+    ``bsdf_only``, is no reason to doubt the verdict)."""
     results = run["methods"]
     notes = []
     # The budget each row was given (stored with it: the baseline itself may have
@@ -181,7 +184,7 @@ def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders
         listing = ", ".join(f"{n} {s}" for n, s in spps.items())
         notes.append(f"equal-time spp too coarse to compare ({listing}): raise --spp")
     kinds = (("equal_spp", "equal samples"), ("equal_time", "equal time"))
-    heavy = [n for n in names if any(results[n][k]["tail_worse_than_baseline"] for k, _ in kinds)]
+    heavy = [n for n in shown if any(results[n][k]["tail_worse_than_baseline"] for k, _ in kinds)]
     if heavy:
         passes = len(results[names[0]]["equal_spp"]["times_s"])
         notes.append(f"heavy tails: {', '.join(heavy)} {'is' if len(heavy) == 1 else 'are'} worse than "
@@ -220,7 +223,6 @@ def verdict(report: dict) -> list[VerdictRow]:
                 if len(contenders) < 2:
                     continue
                 baseline = results[names[0]]["equal_time"]["budget_method"]
-                caveats = _caveats(scene, run, names, baseline, contenders)
                 ref = scene["references"].get(family)
                 lead = DEFAULT_PLUGIN_METHOD.get(family) if DEFAULT_PLUGIN_METHOD.get(family) in project \
                     else (project[0] if project else None)
@@ -230,6 +232,10 @@ def verdict(report: dict) -> list[VerdictRow]:
                                        equal_spp=_cell(results, "equal_spp", project, mitsuba, n),
                                        equal_time=_cell(results, "equal_time", project, mitsuba, n))
                           for n in project if n != lead and mitsuba]
+                shown = list(dict.fromkeys([c.numerator for c in (cell_spp, cell_time)]
+                                           + [c.denominator for c in (cell_spp, cell_time)]
+                                           + [o.method for o in others]))
+                caveats = _caveats(scene, run, names, baseline, contenders, shown)
                 winner_mse = results[cell_spp.winner]["equal_spp"]["error"]["mse"]
                 ref_noise = ref["mean_variance"] if ref else None  # None: no finite reference pixel
                 if winner_mse and ref_noise and ref_noise > MAX_REFERENCE_NOISE * winner_mse:
