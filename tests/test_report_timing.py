@@ -79,3 +79,38 @@ def test_caveats_need_no_row_of_a_baseline_that_failed_at_equal_time():
     notes = _caveats({}, run, ["sh_direct", "direct_misc"], "direct", ["sh_direct", "direct_misc"],
                      ["sh_direct", "direct_misc"])
     assert any("time budget too small" in n for n in notes)
+
+
+def test_a_baseline_whose_pass_time_changed_between_the_phases_makes_the_budget_unreliable():
+    from mitsuba_shsampling.report.verdict import _caveats
+    run = {"methods": {"direct": row(0.080), "sh_direct": row(0.080)}}
+    names = ["direct", "sh_direct"]
+    assert not any("unreliable" in n for n in _caveats({}, run, names, "direct", names, names))
+    run["methods"]["direct"]["equal_spp"]["time_s"] = 0.416  # a busy or cold machine in the first phase
+    notes = _caveats({}, run, names, "direct", names, names)
+    assert any(n.startswith("time budget unreliable: a direct pass took 5.2x") for n in notes)
+
+
+def test_no_render_is_timed_before_its_method_rendered_that_spp_once_untimed(tmp_path, monkeypatch):
+    """Compile (a new spp recompiles with most samplers) and scene set-up stay out of every pass
+    time, the equal-time budget and the convergence sweep."""
+    from mitsuba_shsampling import cli, scenes
+    from mitsuba_shsampling.report import rendering
+
+    log = []
+    untimed_render = rendering.MethodRenderer.render
+
+    def logged_render(self, spp, seed):
+        log.append((id(self), spp, seed))
+        return untimed_render(self, spp, seed)
+
+    monkeypatch.setattr(rendering.MethodRenderer, "render", logged_render)
+    assert cli.main(["compare", scenes.builtin_scenes()["sphere_diffuse"], "--out", str(tmp_path), "--res", "8",
+                     "--spp", "2", "--passes", "2", "--ref-spp", "8", "--sampler", "multijitter",
+                     "--methods", "direct,sh_direct", "--convergence-max-spp", "8",
+                     "--cache-dir", str(tmp_path / "cache"), "--no-progress"]) == 0
+    first_seed = {}
+    for renderer, spp, seed in log:
+        first_seed.setdefault((renderer, spp), seed)
+    assert len(first_seed) >= 2 * 3  # two methods, several spp (convergence 1, 2, 4, 8)
+    assert set(first_seed.values()) == {rendering.SEED_WARMUP}

@@ -366,7 +366,7 @@ class SceneComparison:
             if max_spp > 0:
                 self.bar.set_description(f"{self.name}/{sampler}/{m.name} convergence")
                 for i, spp in enumerate(convergence_spps(sampler, max_spp)):
-                    image, elapsed = renderers[m.name].render(spp, s.seed + SEED_CONVERGENCE + i)
+                    image, elapsed = renderers[m.name].timed_render(spp, s.seed + SEED_CONVERGENCE + i)
                     ref = refs[m.family].image
                     stem = os.path.join(folder, m.name, f"convergence_spp{spp}")
                     write_exr(stem + ".exr", image)

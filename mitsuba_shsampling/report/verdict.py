@@ -35,6 +35,10 @@ BOOTSTRAP_RESAMPLES = 2000
 INTERVAL = 0.90
 #: A baseline pass shorter than this is dominated by per-launch overhead and timer noise.
 MIN_PASS_TIME_S = 0.020
+#: The baseline renders the same spp at equal samples and at equal time; per-sample times of
+#: the two phases further apart than this factor mean the machine's speed changed (other load,
+#: a cold start), and every time ratio of the run with it.
+MAX_TIME_DRIFT = 1.5
 #: Equal-time renders at this many spp or fewer are too coarse to compare.
 MIN_EQUAL_TIME_SPP = 2
 #: The reference's own noise, relative to the winner's MSE, above which ratios shrink towards 1.
@@ -179,6 +183,16 @@ def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders
         notes.append(f"time budget too small to be meaningful: a {baseline} pass takes "
                      f"{1e3 * base_time:.1f} ms (per-launch overhead and timer noise weigh on every "
                      f"time; raise --res or --spp)")
+    base = results.get(baseline)
+    if base and base["equal_spp"].get("time_s") and base["equal_time"].get("time_s"):
+        per_sample = [base[k]["time_s"] / base[k]["spp"] for k in ("equal_spp", "equal_time")]
+        drift = max(per_sample) / min(per_sample)
+        if drift > MAX_TIME_DRIFT:
+            notes.append(f"time budget unreliable: a {baseline} pass took {drift:.1f}x as long at equal "
+                         f"samples ({1e3 * base['equal_spp']['time_s']:.1f} ms) as at equal time "
+                         f"({1e3 * base['equal_time']['time_s']:.1f} ms), so the machine's speed changed "
+                         f"during the run (other load, a cold start) and every time ratio with it; "
+                         f"rerun on a quiet machine, or with more --passes")
     spps = {n: results[n]["equal_time"]["spp"] for n in contenders}
     if min(spps.values()) <= MIN_EQUAL_TIME_SPP:
         listing = ", ".join(f"{n} {s}" for n, s in spps.items())
