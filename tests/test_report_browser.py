@@ -19,7 +19,7 @@ from mitsuba_shsampling import cli, scenes  # noqa: E402
 #: Flags that work on a closed network, as root, without a GPU.
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--window-size=1280,1024")
+                  "--window-size=1400,1024")
 
 
 def chromium_paths() -> tuple[str, str]:
@@ -36,7 +36,8 @@ def report_page(tmp_path_factory):
     out = tmp_path_factory.mktemp("report")
     code = cli.main(["compare", scenes.builtin_scenes()["sphere_ggx010"], "--out", str(out), "--res", "16",
                      "--spp", "2", "--passes", "4", "--ref-spp", "16", "--sampler", "independent",
-                     "--methods", "direct,direct_misc,env_only", "--convergence-max-spp", "2",
+                     "--methods", "direct,direct_misc,env_only,sh_direct,sh_product_only",
+                     "--convergence-max-spp", "2",
                      "--cache-dir", str(out / "cache"), "--no-progress"])
     assert code == 0
     return out
@@ -67,10 +68,41 @@ def test_verdict_table_is_visible_first_with_one_row_per_scene_and_sampler(repor
     assert len(rows) == len(report["verdict"]) == 1
     cells = rows[0].find_elements(By.TAG_NAME, "td")
     assert [c.text for c in cells[:3]] == ["sphere_ggx010", "independent", "direct"]
-    winners = [c.find_element(By.TAG_NAME, "b").text for c in cells[3:5]]
-    assert winners == [report["verdict"][0]["equal_spp"]["winner"], report["verdict"][0]["equal_time"]["winner"]]
+    # First the plugin at its defaults against the best Mitsuba strategy, then the other configurations.
+    assert [c.find_element(By.TAG_NAME, "b").text for c in cells[3:5]] == ["sh_direct (defaults)"] * 2
+    assert "direct" in report["verdict"][0]["equal_spp"]["denominator"]
+    others = browser.find_element(By.ID, "verdict-others").find_elements(By.TAG_NAME, "tr")[1:]
+    assert [r.find_element(By.TAG_NAME, "b").text for r in others] == [
+        "sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false)"]
     # Nothing but the title and the verdict heading comes before it.
     assert table.location["y"] < browser.find_element(By.TAG_NAME, "details").location["y"]
+
+
+def test_the_page_fits_1400_px_and_names_the_environment_map_beside_its_thumbnail(report_page, browser):
+    browser.set_window_size(1400, 1024)
+    browser.get((report_page / "index.html").as_uri())
+    viewport = browser.execute_script("return document.documentElement.clientWidth;")
+    assert viewport <= 1400
+    assert browser.execute_script("return document.documentElement.scrollWidth;") <= viewport
+    for table in browser.find_elements(By.TAG_NAME, "table"):
+        assert table.rect["x"] + table.rect["width"] <= viewport, table.get_attribute("id")
+        if not table.get_attribute("id").startswith("verdict"):
+            # A metrics row is one line of text: no cell (a tail flag) wraps into a tall row.
+            line = browser.execute_script("return parseFloat(getComputedStyle(arguments[0]).fontSize);", table)
+            assert max(row.rect["height"] for row in table.find_elements(By.TAG_NAME, "tr")[1:]) < 2.2 * line
+    envmap = browser.find_element(By.CLASS_NAME, "envmap")
+    assert envmap.is_displayed() and "Environment map: sunsky.exr" in envmap.text
+    thumbnail = envmap.find_element(By.TAG_NAME, "img")
+    assert browser.execute_script("return arguments[0].naturalWidth;", thumbnail) > 0
+
+
+def test_every_method_has_a_zoomed_crop_at_the_same_place(report_page, browser):
+    browser.get((report_page / "index.html").as_uri())
+    crops = browser.find_elements(By.CSS_SELECTOR, ".crop img")
+    report = json.loads((report_page / "report.json").read_text())
+    assert len(crops) == 2 * len(report["scenes"][0]["runs"][0]["methods"])  # equal samples, equal time
+    offsets = {(c.value_of_css_property("margin-left"), c.value_of_css_property("margin-top")) for c in crops}
+    assert len(offsets) == 1
 
 
 def test_every_image_on_the_page_loads(report_page, browser):

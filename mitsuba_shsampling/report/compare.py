@@ -18,6 +18,7 @@ import dataclasses
 import json
 import os
 import platform
+import re
 import sys
 import time
 
@@ -267,8 +268,21 @@ class SceneComparison:
         runs = [self.run_sampler(sampler, methods, refs, exposure) for sampler in self.settings.samplers]
         figures = self.sampler_figures() if any(m.product_sampling for m in methods) else []
         return {"scene": self.name, "path": self.path, "has_envmap": self.has_envmap,
+                "envmap": self.envmap_entry(),
                 "notes": self.notes, "exposure": exposure, "references": ref_entries, "runs": runs,
                 "sampler_figures": figures}
+
+    def envmap_entry(self) -> dict | None:
+        """The environment map's file name (``--envmap``, else the scene's) and a thumbnail."""
+        if not self.has_envmap:
+            return None
+        named = re.search(r'filename = "([^"]*)"', str(self.envmap))
+        name = os.path.basename(self.settings.envmap) if self.settings.envmap else (
+            named.group(1) if named else "(built from a bitmap)")
+        path = os.path.join(self.folder, "envmap.png")
+        os.makedirs(self.folder, exist_ok=True)
+        images.write_png(path, images.thumbnail(np.array(mi.traverse(self.envmap)["data"])[:, 1:-1]))
+        return {"name": name, "png": self.rel(path)}
 
     def sampler_figures(self) -> list[dict]:
         """Warped sample points over their targets (SH lobe; lobe x this scene's map)."""
@@ -380,8 +394,8 @@ class SceneComparison:
         # What actually rendered, read back from the sensor the passes used.
         sensor = next(iter(renderers.values())).sensor if renderers else None
         breakdown = self.material_breakdown(renderers, methods, equal_spp, equal_time, refs)
-        run = {"sampler": sampler, "methods": results, "maps": maps, "convergence_plot": None,
-               "materials": breakdown,
+        run = {"sampler": sampler, "methods": results, "maps": maps, "crop": self.crop(methods, equal_spp),
+               "convergence_plot": None, "materials": breakdown,
                "sampler_plugin": sensor.sampler().class_name() if sensor else None,
                "film_size": [int(v) for v in sensor.film().size()] if sensor else None}
         if max_spp > 0:
@@ -434,6 +448,16 @@ class SceneComparison:
                 e.efficiency_ratio_vs_baseline = e.efficiency / b.efficiency if b.efficiency > 0 else None
                 if entry is not base:
                     e.tail_worse_than_baseline = metrics.tail_worse(e.tail, b.tail, base_name)
+
+    @staticmethod
+    def crop(methods: list[Method], equal_spp: dict[str, PassSet]) -> list[int] | None:
+        """[x, y, size] of the zoomed crop shown for every method: the window of a sixth of the
+        image (at least 8 px) where the methods' summed per-pixel variance is largest."""
+        if not methods:
+            return None
+        variance = sum(metrics.pixel_variance(equal_spp[m.name].images) for m in methods)
+        size = max(8, min(variance.shape) // 6)
+        return [*images.noisiest_window(variance, size), min(size, *variance.shape)]
 
     def write_maps(self, folder: str, methods: list[Method], equal_spp: dict[str, PassSet],
                    refs: dict[str, Reference]) -> dict:

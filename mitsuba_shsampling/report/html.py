@@ -1,8 +1,10 @@
 """The self-contained ``index.html`` of a comparison report.
 
 Written from the serialised report (the dict saved as ``report.json``). The
-verdict comes first, then the caveats, then one section per scene; settings and
-machine are in a collapsed ``<details>`` at the bottom. Every image is embedded
+verdict comes first, then the caveats, then one section per scene (its map,
+references, metrics, renders at full resolution with zoomed crops, error maps
+with their colour bars, convergence, warped sample points); settings and
+machine are in a collapsed ``<details>`` at the bottom. The page fits 1400 px. Every image is embedded
 as a base64 PNG (the page works when copied alone); links point to the EXR files
 next to it, by paths relative to the report folder.
 """
@@ -13,20 +15,26 @@ import html as html_escape
 import json
 import os
 
+import numpy as np
+
 from . import metrics, verdict
-from .images import data_uri
+from .images import data_uri, false_colour, png_bytes
 from .methods import DIRECT
 
 STYLE = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
 table { border-collapse: collapse; margin: 0.5em 0 1em 0; font-size: 0.85em; }
-th, td { border: 1px solid #bbb; padding: 3px 7px; text-align: right; }
+th, td { border: 1px solid #bbb; padding: 3px 6px; text-align: right; }
+.scroll { max-width: 100%; overflow-x: auto; } .scroll td { white-space: nowrap; }
 th { background: #eee; } td.name { text-align: left; }
-table#verdict { font-size: 1em; } table#verdict td, table#verdict th { text-align: left; }
+table#verdict { font-size: 1em; } table[id^=verdict] td, table[id^=verdict] th { text-align: left; }
 td.win { background: #d7f5d0; font-weight: bold; }
 .row { display: flex; flex-wrap: wrap; gap: 8px; }
 figure { margin: 0; text-align: center; font-size: 0.75em; }
-figure img { image-rendering: pixelated; width: 192px; }
+figure img { image-rendering: pixelated; min-width: 256px; }
+.crop { overflow: hidden; } .crop img { max-width: none; min-width: 0; }
+.bar { display: flex; align-items: center; gap: 6px; font-size: 0.8em; margin: 0.3em 0 1em 0; }
+.bar img { width: 256px; height: 12px; } .envmap img { vertical-align: middle; margin-right: 0.5em; }
 .note { color: #8a4b00; } .bad { color: #b00; font-weight: bold; } .na { color: #b00; }
 pre { background: #f6f6f6; padding: 0.5em; font-size: 0.8em; }
 """
@@ -137,35 +145,70 @@ reference by more than noise explains; re-check it with more, independent passes
 
 
 def _metrics_table(run: dict) -> str:
-    cols = [("spp", "spp", lambda e: e["spp"]),
-            ("mse", "expected MSE", lambda e: e["error"]["mse"]),
-            ("pixvar", "pixel variance", lambda e: e["error"]["pixel_variance"]),
-            ("rel", "rel. MSE", lambda e: e["error"]["rel_mse"]),
-            ("time", "time/pass (s)", lambda e: e["time_s"]),
-            ("eff", "efficiency", lambda e: e["efficiency"]),
-            ("mse_b", "MSE / base", lambda e: e["mse_ratio_vs_baseline"]),
-            ("eff_b", "eff. / base", lambda e: e["efficiency_ratio_vs_baseline"]),
-            ("max", "brightest pixel", lambda e: e["tail"]["max_pixel"]),
-            ("pct", f"{metrics.TAIL_PERCENTILE:g} % |err|", lambda e: e["tail"]["abs_error_percentile"]),
-            ("ff", "fireflies", lambda e: e["tail"]["fireflies"]),
-            ("t", "bias t", lambda e: e["bias"]["t"]),
-            ("p", "bias p", lambda e: e["bias"]["p_value"]),
-            ("ok", "unbiased", lambda e: not e["bias"]["flagged"])]
-    head = "".join(f"<th>{c}</th>" for _, c, _ in cols)
-    rows = [f'<tr><th>method</th><th>rays/sample</th><th>compile (s)</th><th>comparison</th>{head}'
-            f'<th>tail vs baseline</th></tr>']
+    """One row per method and comparison; a tail flagged worse than the baseline's says how many
+    of its statistics are (the texts in the cell's tooltip and in report.json)."""
+    cols = [("spp", lambda e: e["spp"]),
+            ("expected MSE", lambda e: e["error"]["mse"]),
+            ("pixel variance", lambda e: e["error"]["pixel_variance"]),
+            ("rel. MSE", lambda e: e["error"]["rel_mse"]),
+            ("time/pass (s)", lambda e: e["time_s"]),
+            ("MSE / base", lambda e: e["mse_ratio_vs_baseline"]),
+            ("eff. / base", lambda e: e["efficiency_ratio_vs_baseline"]),
+            ("brightest pixel", lambda e: e["tail"]["max_pixel"]),
+            (f"{metrics.TAIL_PERCENTILE:g} % |err|", lambda e: e["tail"]["abs_error_percentile"]),
+            ("fireflies", lambda e: e["tail"]["fireflies"]),
+            ("bias p", lambda e: e["bias"]["p_value"])]
+    head = "".join(f"<th>{c}</th>" for c, _ in cols)
+    rows = [f'<tr><th>method</th><th>compile (s)</th><th>comparison</th>{head}<th>tail vs baseline</th></tr>']
     for name, entry in run["methods"].items():
         # Oracle rows are references (the ideal product sampler), not contenders.
         shown = f"{_e(name)} (reference row)" if entry.get("oracle") else _e(name)
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
             e = entry[kind]
-            cells = "".join(f"<td>{_num(get(e))}</td>" for _, _, get in cols)
+            cells = "".join(f"<td>{_num(get(e))}</td>" for _, get in cols[:-1])
+            p = _num(e["bias"]["p_value"])
+            cells += f'<td class="bad" title="bias flag">{p} BIAS?</td>' if e["bias"]["flagged"] else f"<td>{p}</td>"
             worse = e["tail_worse_than_baseline"]
-            tail = f'<td class="name bad">{_e("; ".join(worse))}</td>' if worse else '<td class="name">ok</td>'
-            rows.append(f'<tr><td class="name">{shown}</td><td>{entry["rays_per_sample"]}</td>'
-                        f'<td>{_num(entry["compile_time_s"], 3)}</td><td class="name">{title}</td>'
-                        f'{cells}{tail}</tr>')
-    return "<table>" + "".join(rows) + "</table>"
+            tail = (f'<td class="name bad" title="{_e("; ".join(worse))}">worse: {len(worse)} of 3</td>' if worse
+                    else '<td class="name">ok</td>')
+            lead = (f'<td class="name" rowspan="2">{shown}</td><td rowspan="2">{_num(entry["compile_time_s"], 3)}</td>'
+                    if kind == "equal_spp" else "")
+            rows.append(f'<tr>{lead}<td class="name">{title}</td>{cells}{tail}</tr>')
+    return '<div class="scroll"><table>' + "".join(rows) + "</table></div>"
+
+
+def _colour_bar(lo: float, hi: float) -> str:
+    """The log colour scale of the false-colour maps, from ``lo`` to ``hi``."""
+    if lo is None or hi is None:
+        return ""
+    ramp = false_colour(np.geomspace(max(lo, 1e-30), max(hi, 10 * max(lo, 1e-30)), 256)[None].repeat(12, 0), lo, hi)
+    return (f'<div class="bar">{_num(lo, 3)}<img src="{data_uri(png_bytes(ramp))}" alt="colour scale">'
+            f'{_num(hi, 3)} (log scale, inferno)</div>')
+
+
+def _render_figures(page: _Page, run: dict, kind: str) -> str:
+    """The first pass of every method at full resolution (integer zoom to at least 256 px wide),
+    then the same zoomed crop of each, so that noise can be judged by eye."""
+    width = run["film_size"][0] if run.get("film_size") else 128
+    zoom = max(1, 256 // width)
+    full, crops = [], []
+    x, y, size = run.get("crop") or (0, 0, 0)
+    crop_zoom = max(1, 128 // max(size, 1))
+    for name, entry in run["methods"].items():
+        e = entry[kind]
+        src = page.embed(e["files"]["first_pass_png"])
+        caption = f"{name}, {e['spp']} spp, pass MSE {_num(e['error']['mse_per_pass'][0], 3)}"
+        full.append(f'<figure><img src="{src}" alt="{_e(caption)}" style="width:{width * zoom}px">'
+                    f'<figcaption>{_e(caption)} (<a href="{_e(e["files"]["first_pass"])}">EXR</a>)'
+                    f'</figcaption></figure>')
+        if size:
+            crops.append(f'<figure><div class="crop" style="width:{size * crop_zoom}px;height:{size * crop_zoom}px">'
+                         f'<img src="{src}" alt="{_e(name)}, crop" style="width:{width * crop_zoom}px;'
+                         f'margin-left:-{x * crop_zoom}px;margin-top:-{y * crop_zoom}px"></div>'
+                         f'<figcaption>{_e(name)}</figcaption></figure>')
+    where = (f"<p>Zoomed crop, pixels [{x}, {x + size}) x [{y}, {y + size}) (where the methods' "
+             f"variance is largest), {crop_zoom}x:</p>" if size else "")
+    return f"<div class='row'>{''.join(full)}</div>{where}<div class='row'>{''.join(crops)}</div>"
 
 
 def _materials_table(rows: list[dict]) -> str:
@@ -195,19 +238,18 @@ def _materials_table(rows: list[dict]) -> str:
 
 def _scene_section(page: _Page, scene: dict) -> None:
     page.add(f"<h2>Scene {_e(scene['scene'])}</h2><p>{_e(scene['path'])}</p>")
+    env = scene.get("envmap")
+    if env:
+        page.add(f'<p class="envmap"><img src="{page.embed(env["png"])}" alt="environment map {_e(env["name"])}" '
+                 f'style="width:256px">Environment map: <b>{_e(env["name"])}</b></p>')
+    else:
+        page.add('<p class="envmap">No environment map.</p>')
     for note in scene["notes"]:
         page.add(f'<p class="note">{_e(note)}</p>')
     refs = "".join(page.image(r["png"], f"reference ({r['integrator']}, {r['spp']} spp in {r['chunks']} "
                               f"chunks, mean variance {_num(r['mean_variance'], 3)})", r["file"])
                    for r in scene["references"].values())
     page.add(f'<div class="row">{refs}</div>')
-    if scene.get("sampler_figures"):
-        page.add("<h3>Warped sample points</h3><p>Hierarchical warping of an 8-band Phong lobe "
-                 "(s = 20) alone and times this scene's environment, on the equal-area (phi, z) "
-                 "grid (square-root colour scale). From a Hammersley set the warped points stay "
-                 "stratified: the warp preserves the input's low discrepancy.</p>")
-        for fig in scene["sampler_figures"]:
-            page.add(f'<img src="{page.embed(fig["png"])}" alt="{_e(fig["caption"])}">')
     for run in scene["runs"]:
         rendered = (f" (rendered by Mitsuba's {_e(run['sampler_plugin'])}, film "
                     f"{run['film_size'][0]} x {run['film_size'][1]})" if run.get("sampler_plugin") else "")
@@ -221,18 +263,12 @@ def _scene_section(page: _Page, scene: dict) -> None:
                      "the image, that falls on the material.</p>")
             page.add(_materials_table(rows))
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
-            figs = []
-            for name, entry in run["methods"].items():
-                e = entry[kind]
-                figs.append(page.image(e["files"]["first_pass_png"],
-                                       f"{name}, {e['spp']} spp, pass MSE {_num(e['error']['mse_per_pass'][0], 3)}",
-                                       e["files"]["first_pass"]))
-            page.add(f"<h4>Renders at {title} (first pass)</h4><div class='row'>{''.join(figs)}</div>")
+            page.add(f"<h4>Renders at {title} (first pass)</h4>{_render_figures(page, run, kind)}")
         for kind, title in (("variance", "Per-pixel variance across passes (equal samples, tails included)"),
                             ("rel_error", "Per-pixel relative squared error (equal samples)")):
             lo, hi = run["maps"]["_scale"][kind]
             figs = [page.image(maps[kind], name) for name, maps in run["maps"].items() if name != "_scale"]
-            page.add(f"<h4>{title}; shared log colour scale {_num(lo, 3)} .. {_num(hi, 3)} (inferno)</h4>"
+            page.add(f"<h4>{title}; shared colour scale</h4>{_colour_bar(lo, hi)}"
                      f"<div class='row'>{''.join(figs)}</div>")
         if run["convergence_plot"]:
             page.add("<h4>Convergence (one render per spp)</h4>")
@@ -240,6 +276,13 @@ def _scene_section(page: _Page, scene: dict) -> None:
         else:
             page.add("<p>No convergence sweep with this sampler (it runs with the first sampler "
                      "only: the others recompile their kernels for every sample count).</p>")
+    if scene.get("sampler_figures"):
+        page.add("<h3>Warped sample points (an illustration, not this scene's BSDF)</h3><p>Hierarchical "
+                 "warping of an 8-band Phong lobe (s = 20) alone and times this scene's environment, on the "
+                 "equal-area (phi, z) grid (square-root colour scale). From a Hammersley set the warped points "
+                 "stay stratified: the warp preserves the input's low discrepancy.</p>")
+        for fig in scene["sampler_figures"]:
+            page.add(f'<img src="{page.embed(fig["png"])}" alt="{_e(fig["caption"])}" style="max-width:100%">')
 
 
 def write_html(path: str, report: dict) -> None:

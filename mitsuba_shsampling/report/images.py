@@ -27,6 +27,26 @@ def false_colour(values: np.ndarray, vmin: float, vmax: float, cmap: str = "infe
     return np.round(plt.get_cmap(cmap)(np.nan_to_num(t))[..., :3] * 255).astype(np.uint8)
 
 
+def noisiest_window(values: np.ndarray, size: int) -> tuple[int, int]:
+    """(x, y) of the top-left corner of the ``size`` x ``size`` window of (H, W) ``values``
+    with the largest sum (the first one on ties); ``size`` is clipped to the map."""
+    height, width = values.shape
+    size = min(size, height, width)
+    table = np.pad(np.nan_to_num(values, nan=0.0, posinf=0.0).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    sums = table[size:, size:] - table[:-size, size:] - table[size:, :-size] + table[:-size, :-size]
+    y, x = np.unravel_index(int(np.argmax(sums)), sums.shape)
+    return int(x), int(y)
+
+
+def thumbnail(image: np.ndarray, width: int = 256) -> np.ndarray:
+    """A lat-long map (H, W, C) as sRGB uint8 at most ``width`` wide (every k-th texel), exposed
+    so that its 99th luminance percentile shows at 0.9."""
+    step = max(1, int(np.ceil(image.shape[1] / width)))
+    small = np.nan_to_num(image[::step, ::step, :3], nan=0.0, posinf=0.0)
+    p99 = float(np.quantile(small.mean(axis=-1), 0.99)) if small.size else 0.0
+    return tonemap(small, 0.9 / p99 if p99 > 0 else 1.0)
+
+
 def log_range(maps: list[np.ndarray], low_quantile: float = 0.02) -> tuple[float, float]:
     """Shared log-scale range of several non-negative maps: (a low quantile of positives, max)."""
     values = np.concatenate([m.ravel() for m in maps])
