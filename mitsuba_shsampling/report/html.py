@@ -75,8 +75,9 @@ class _Page:
 
 def _cell_html(cell: dict, label: str | None) -> str:
     """A verdict cell: the numerator (named ``label``) against the denominator, highlighted when
-    the numerator is the better of the two; the overall winner below."""
-    better = cell["ratio"] is not None and (cell["ratio"] < 1 if cell["quantity"] == "MSE" else cell["ratio"] > 1)
+    the interval says the numerator is the better of the two; the overall winner below."""
+    low, high = cell["low"], cell["high"]
+    better = low is not None and high is not None and (high < 1 if cell["quantity"] == "MSE" else low > 1)
     best = "lowest MSE" if cell["quantity"] == "MSE" else "highest efficiency"
     return (f'<td class="{"win" if better else "name"}"><b>{_e(label or cell["numerator"])}</b><br>'
             f'<small>{_num(cell["ratio"], 3)}x the {cell["quantity"]} of {_e(cell["denominator"])} '
@@ -101,8 +102,8 @@ def _verdict_section(report: dict) -> str:
     table = f'<table id="verdict">{head}{"".join(body)}</table>'
     legend = (f"<p>First: the project's plugin at its defaults (what switching the integrator gives) "
               f"against the best of Mitsuba's own strategies in the same run (or, with no project "
-              f"method, the winner against the runner-up), highlighted when it is the better of the two: "
-              f"MSE ratio at equal samples (below 1: the first is better), efficiency ratio "
+              f"method, the winner against the runner-up), highlighted when its interval says it is "
+              f"the better of the two: MSE ratio at equal samples (below 1: the first is better), efficiency ratio "
               f"1/(MSE x time) at equal time (above 1: the first is better); in brackets the "
               f"{verdict.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
     if others:
@@ -261,7 +262,7 @@ def _scene_section(page: _Page, scene: dict) -> None:
                      "beats every Mitsuba strategy on that material's pixels (the best one there is "
                      "named); the error share is the part of the method's squared error, summed over "
                      "the image, that falls on the material.</p>")
-            page.add(_materials_table(rows))
+            page.add(f'<div class="scroll">{_materials_table(rows)}</div>')
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
             page.add(f"<h4>Renders at {title} (first pass)</h4>{_render_figures(page, run, kind)}")
         for kind, title in (("variance", "Per-pixel variance across passes (equal samples, tails included)"),
