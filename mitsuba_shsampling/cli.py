@@ -7,13 +7,18 @@ variant, invalid option), 1 any other failure.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
+from typing import TYPE_CHECKING
 
 from . import render
 from .command_line import DEFAULT_VARIANT, SAMPLERS, UsageError, set_variant
 from .sweep import command as sweep
 from .report import DEFAULT_CACHE_DIR
+
+if TYPE_CHECKING:
+    from .report.schema import Report
 
 COMPARE_RES = 192
 
@@ -121,48 +126,49 @@ def _compare(args) -> int:
 
 
 def _fmt(value, spec: str) -> str:
-    """``value`` formatted by ``spec``; a missing one as ``n/a`` of the same width."""
-    return "n/a".rjust(int(spec.split(".")[0] or 0)) if value is None else format(value, spec)
+    """``value`` formatted by ``spec``; a missing or non-finite one as ``n/a`` of the same width."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a".rjust(int(spec.split(".")[0] or 0))
+    return format(value, spec)
 
 
-def _print_summary(report: dict) -> None:
+def _print_summary(report: Report) -> None:
     """The verdict, then one line per method and comparison (n/a: see the report's notes)."""
-    for scene in report["scenes"]:
-        for note in scene["notes"]:
-            print(f"note ({scene['scene']}): {note}")
-        for run in scene["runs"]:
-            print(f"\n{scene['scene']} [{run['sampler']}]")
+    for scene in report.scenes:
+        for note in scene.notes:
+            print(f"note ({scene.scene}): {note}")
+        for run in scene.runs:
+            print(f"\n{scene.scene} [{run.sampler}]")
             print(f"  {'method':<16}{'kind':<11}{'spp':>5}{'exp. MSE':>11}{'pix.var':>10}{'time(s)':>9}"
                   f"{'eff/base':>9}{'max px':>9}{'fireflies':>10}{'bias p':>9}")
-            for name, entry in run["methods"].items():
+            for name, entry in run.methods.items():
                 for kind in ("equal_spp", "equal_time"):
-                    e = entry[kind]
-                    print(f"  {name:<16}{kind:<11}{e['spp']:>5}{_fmt(e['error']['mse'], '11.3e')}"
-                          f"{_fmt(e['error']['pixel_variance'], '10.2e')}{_fmt(e['time_s'], '9.3f')}"
-                          f"{_fmt(e['efficiency_ratio_vs_baseline'], '9.2f')}{_fmt(e['tail']['max_pixel'], '9.3g')}"
-                          f"{e['tail']['fireflies']:>10}{_fmt(e['bias']['p_value'], '9.2g')}"
-                          f"{'  BIAS?' if e['bias']['flagged'] else ''}"
-                          f"{'  TAIL' if e['tail_worse_than_baseline'] else ''}")
-            for family, rows in (run.get("materials") or {}).items():
-                project = list(rows[0]["error_ratio"]) if rows else []
+                    e = getattr(entry, kind)
+                    print(f"  {name:<16}{kind:<11}{e.spp:>5}{_fmt(e.error.mse, '11.3e')}"
+                          f"{_fmt(e.error.pixel_variance, '10.2e')}{_fmt(e.time_s, '9.3f')}"
+                          f"{_fmt(e.efficiency_ratio_vs_baseline, '9.2f')}{_fmt(e.tail.max_pixel, '9.3g')}"
+                          f"{e.tail.fireflies:>10}{_fmt(e.bias.p_value, '9.2g')}"
+                          f"{'  BIAS?' if e.bias.flagged else ''}"
+                          f"{'  TAIL' if e.tail_worse_than_baseline else ''}")
+            for family, rows in (run.materials or {}).items():
+                project = list(rows[0].error_ratio) if rows else []
                 print(f"  per material ({family}): pixels, squared error / best Mitsuba there at equal samples and "
                       f"equal time, share of the method's error")
                 for row in rows:
-                    cells = "  ".join(f"{n} {_fmt(row['error_ratio'][n].get('equal_spp'), '.2f')} / "
-                                      f"{_fmt(row['error_ratio'][n].get('equal_time'), '.2f')} "
-                                      f"({_fmt(row['error_share'].get(n), '.0%')})" for n in project)
-                    print(f"    {row['name'][:22]:<23}{row['plugin'][:16]:<17}{row['pixel_share']:>6.1%}  "
-                          f"vs {str(row['best_mitsuba'].get('equal_spp')):<12}{cells}")
+                    cells = "  ".join(f"{n} {_fmt(row.error_ratio[n].get('equal_spp'), '.2f')} / "
+                                      f"{_fmt(row.error_ratio[n].get('equal_time'), '.2f')} "
+                                      f"({_fmt(row.error_share.get(n), '.0%')})" for n in project)
+                    print(f"    {row.name[:22]:<23}{row.plugin[:16]:<17}{row.pixel_share:>6.1%}  "
+                          f"vs {str(row.best_mitsuba.get('equal_spp')):<12}{cells}")
     print("\nverdict:")
-    for row in report["verdict"]:
-        print(f"  {row['scene']} [{row['sampler']}, {row['family']}]")
-        for label, line in [(row["configuration"], row)] + [(o["configuration"], o) for o in row["others"]]:
-            for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
-                c = line[kind]
-                print(f"    {title}: {label or c['numerator']} / {c['denominator']} {c['quantity']} "
-                      f"x{_fmt(c['ratio'], '.3g')} [{_fmt(c['low'], '.3g')}, {_fmt(c['high'], '.3g')}] "
-                      f"({c['winner']} best of all)")
-        for caveat in row["caveats"]:
+    for row in report.verdict:
+        print(f"  {row.scene} [{row.sampler}, {row.family}]")
+        for label, line in [(row.configuration, row)] + [(o.configuration, o) for o in row.others]:
+            for c, title in ((line.equal_spp, "equal samples"), (line.equal_time, "equal time")):
+                print(f"    {title}: {label or c.numerator} / {c.denominator} {c.quantity} "
+                      f"x{_fmt(c.ratio, '.3g')} [{_fmt(c.low, '.3g')}, {_fmt(c.high, '.3g')}] "
+                      f"({c.winner} best of all)")
+        for caveat in row.caveats:
             print(f"    caveat: {caveat}")
 
 

@@ -21,6 +21,7 @@ import json
 import os
 
 from mitsuba_shsampling.report.methods import DEFAULT_PLUGIN_METHOD, DIRECT, MULTI_BOUNCE, mitsuba_strategies
+from mitsuba_shsampling.report.schema import Report, load_report
 from mitsuba_shsampling.report.verdict import ratio_with_interval
 from mitsuba_shsampling.sweep.aggregate import KIND as SWEEP_AGGREGATE
 
@@ -33,52 +34,53 @@ def reports(path: str):
     with open(path) as f:
         data = json.load(f)
     if data.get("kind") != SWEEP_AGGREGATE:
-        yield data
+        yield load_report(data)
         return
     for cell in data["cells"]:
         if cell.get("status") == "ok" and cell.get("report"):
-            with open(os.path.join(os.path.dirname(os.path.abspath(path)), cell["report"])) as f:
-                yield json.load(f)
+            yield load_report(os.path.join(os.path.dirname(os.path.abspath(path)), cell["report"]))
 
 
-def envmap_name(report: dict) -> str:
-    envmap = report["settings"].get("envmap")
+def envmap_name(report: Report) -> str:
+    envmap = report.settings.envmap if report.settings else None
     return os.path.splitext(os.path.basename(envmap))[0] if envmap else "built-in sunsky"
 
 
-def rows(report: dict, family: str):
-    """One row per scene x sampler that ran the family's SH method."""
+def rows(report: Report | dict, family: str):
+    """One row per scene x sampler that ran the family's SH method (``report`` typed, or the
+    report.json dict)."""
+    report = load_report(report)
     sh_method, baseline = DEFAULT_PLUGIN_METHOD[family], BASELINE[family]
-    for scene in report["scenes"]:
-        for run in scene["runs"]:
-            methods = run["methods"]
+    for scene in report.scenes:
+        for run in scene.runs:
+            methods = run.methods
             if sh_method not in methods:
                 continue
-            ours = methods[sh_method]["equal_spp"]
+            ours = methods[sh_method].equal_spp
             mitsuba = mitsuba_strategies(methods, family)
-            theirs = {n: methods[n]["equal_spp"] for n in mitsuba}
-            best_mse = min(theirs, key=lambda n: theirs[n]["error"]["mse"])
-            best_eff = max(theirs, key=lambda n: theirs[n]["efficiency"])
+            theirs = {n: methods[n].equal_spp for n in mitsuba}
+            best_mse = min(theirs, key=lambda n: theirs[n].error.mse)
+            best_eff = max(theirs, key=lambda n: theirs[n].efficiency)
             base = theirs.get(baseline)
-            timed = {n: methods[n]["equal_time"] for n in (*mitsuba, sh_method) if methods[n].get("equal_time")}
-            best_timed = max((n for n in timed if n != sh_method), key=lambda n: timed[n]["efficiency"],
+            timed = {n: methods[n].equal_time for n in (*mitsuba, sh_method) if methods[n].equal_time}
+            best_timed = max((n for n in timed if n != sh_method), key=lambda n: timed[n].efficiency,
                              default=None)
             timed_ratio = (ratio_with_interval("equal_time", timed[sh_method], timed[best_timed])
                            if best_timed and sh_method in timed else (None, None, None))
             yield {
-                "map": envmap_name(report), "scene": scene["scene"], "sampler": run["sampler"],
+                "map": envmap_name(report), "scene": scene.scene, "sampler": run.sampler,
                 "family": family, "method": sh_method,
-                "mse_vs_direct": ours["error"]["mse"] / base["error"]["mse"] if base else None,
-                "mse_vs_best": ours["error"]["mse"] / theirs[best_mse]["error"]["mse"], "best_mse": best_mse,
-                "eff_vs_direct": ours["efficiency"] / base["efficiency"] if base else None,
-                "eff_vs_best": ours["efficiency"] / theirs[best_eff]["efficiency"], "best_eff": best_eff,
-                "time_vs_direct": ours["time_s"] / base["time_s"] if base else None,
+                "mse_vs_direct": ours.error.mse / base.error.mse if base else None,
+                "mse_vs_best": ours.error.mse / theirs[best_mse].error.mse, "best_mse": best_mse,
+                "eff_vs_direct": ours.efficiency / base.efficiency if base else None,
+                "eff_vs_best": ours.efficiency / theirs[best_eff].efficiency, "best_eff": best_eff,
+                "time_vs_direct": ours.time_s / base.time_s if base else None,
                 "timed_eff_vs_best": timed_ratio[0], "timed_low": timed_ratio[1], "timed_high": timed_ratio[2],
                 "best_timed": best_timed,
-                "brightest_vs_direct": (ours["tail"]["max_pixel"] / base["tail"]["max_pixel"]
-                                        if base and base["tail"]["max_pixel"] else None),
-                "bias_ok": not ours["bias"]["flagged"],
-                "tail_ok": not ours["tail_worse_than_baseline"],
+                "brightest_vs_direct": (ours.tail.max_pixel / base.tail.max_pixel
+                                        if base and base.tail.max_pixel else None),
+                "bias_ok": not ours.bias.flagged,
+                "tail_ok": not ours.tail_worse_than_baseline,
             }
 
 

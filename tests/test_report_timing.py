@@ -65,29 +65,34 @@ def test_the_first_untimed_render_gives_the_compile_time():
     assert renderer.compile_time_s == 1.0 - 0.01
 
 
-def row(budget_s, spp=8):
-    entry = {"spp": spp, "time_s": budget_s, "time_budget_s": budget_s, "times_s": [budget_s],
-             "tail_worse_than_baseline": [], "bias": {"flagged": False, "p_value": 0.5},
-             "error": {"non_finite": 0}}
-    return {"equal_spp": dict(entry), "equal_time": dict(entry)}
+def timed_run(budgets_s: dict[str, float], spp=8):
+    """A run as the verdict reads it: per method, both comparisons taking their budget."""
+    from mitsuba_shsampling.report.schema import load_report
+
+    def entry(budget_s):
+        return {"spp": spp, "time_s": budget_s, "time_budget_s": budget_s, "times_s": [budget_s],
+                "tail_worse_than_baseline": [], "bias": {"flagged": False, "p_value": 0.5},
+                "error": {"non_finite": 0}}
+    methods = {n: {"equal_spp": entry(b), "equal_time": entry(b)} for n, b in budgets_s.items()}
+    return load_report({"scenes": [{"runs": [{"methods": methods}]}]}).scenes[0].runs[0]
 
 
 def test_caveats_need_no_row_of_a_baseline_that_failed_at_equal_time():
     """A baseline dropped in the equal-time phase leaves the others' budgets with them."""
     from mitsuba_shsampling.report.verdict import _caveats
-    run = {"methods": {"sh_direct": row(0.005), "direct_misc": row(0.005)}}
-    notes = _caveats({}, run, ["sh_direct", "direct_misc"], "direct", ["sh_direct", "direct_misc"],
+    run = timed_run({"sh_direct": 0.005, "direct_misc": 0.005})
+    notes = _caveats("s.xml", run, ["sh_direct", "direct_misc"], "direct", ["sh_direct", "direct_misc"],
                      ["sh_direct", "direct_misc"])
     assert any("time budget too small" in n for n in notes)
 
 
 def test_a_baseline_whose_pass_time_changed_between_the_phases_makes_the_budget_unreliable():
     from mitsuba_shsampling.report.verdict import _caveats
-    run = {"methods": {"direct": row(0.080), "sh_direct": row(0.080)}}
+    run = timed_run({"direct": 0.080, "sh_direct": 0.080})
     names = ["direct", "sh_direct"]
-    assert not any("unreliable" in n for n in _caveats({}, run, names, "direct", names, names))
-    run["methods"]["direct"]["equal_spp"]["time_s"] = 0.416  # a busy or cold machine in the first phase
-    notes = _caveats({}, run, names, "direct", names, names)
+    assert not any("unreliable" in n for n in _caveats("s.xml", run, names, "direct", names, names))
+    run.methods["direct"].equal_spp.time_s = 0.416  # a busy or cold machine in the first phase
+    notes = _caveats("s.xml", run, names, "direct", names, names)
     assert any(n.startswith("time budget unreliable: a direct pass took 5.2x") for n in notes)
 
 

@@ -17,6 +17,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling import cli, scenes  # noqa: E402
 from mitsuba_shsampling.report.compare import CompareSettings, run_compare  # noqa: E402
+from mitsuba_shsampling.report.schema import serialise  # noqa: E402
 from mitsuba_shsampling.sweep import aggregate  # noqa: E402
 from mitsuba_shsampling.sweep.cells import cell_inputs, cell_key, describe_failure, run_cell  # noqa: E402
 from mitsuba_shsampling.sweep.grid import GridError, load_grid  # noqa: E402
@@ -270,13 +271,13 @@ def test_aggregate_numbers_are_those_of_compare_on_the_same_cell(first_sweep, tm
     direct = run_compare([str(root / "scenes" / "sphere_ggx010.xml")], CompareSettings(
         out=str(tmp_path / "compare"), samplers=("independent",), methods=tuple(METHODS),
         envmap=scenes.SUNSKY_MAP, cache_dir=str(tmp_path / "cache"), progress=False, **TINY))
-    methods = direct["scenes"][0]["runs"][0]["methods"]
+    methods = direct.scenes[0].runs[0].methods
     for m in METHODS:
-        assert methods[m]["equal_spp"]["spp"] == stored[m]["equal_spp"]["spp"]
-        assert methods[m]["equal_spp"]["error"]["mse"] == pytest.approx(row["methods"][m]["equal_spp_mse"], rel=1e-5)
+        assert methods[m].equal_spp.spp == stored[m]["equal_spp"]["spp"]
+        assert methods[m].equal_spp.error.mse == pytest.approx(row["methods"][m]["equal_spp_mse"], rel=1e-5)
     local = ("out", "cache_dir", "progress")
     settings = json.load(open(os.path.join(out, row["report"])))["settings"]
-    assert {k: v for k, v in direct["settings"].items() if k not in local} == \
+    assert {k: v for k, v in serialise(direct.settings).items() if k not in local} == \
         {k: v for k, v in settings.items() if k not in local}
 
 

@@ -7,15 +7,12 @@ ray budget, then K passes at the spp that takes about as long as the baseline
 render per spp value). Everything is measured against a cached ``path``
 reference (:mod:`.metrics`: expected error, tails, bias test), judged in a
 verdict (:mod:`.verdict`), and written to ``report.json``, ``metrics.csv``,
-EXR/PNG files and ``index.html``. Results are dataclasses; :func:`serialise` is
-the one place they become JSON.
+EXR/PNG files and ``index.html``. Results are the typed report of :mod:`.schema`.
 """
 
 from __future__ import annotations
 
 import csv
-import dataclasses
-import json
 import os
 import platform
 import re
@@ -28,10 +25,8 @@ from tqdm import tqdm
 import drjit as dr
 import mitsuba as mi
 
-import math
-
 from ..scenes import SceneError, scene_envmap
-from . import DEFAULT_CACHE_DIR, html, images, materials, metrics, verdict
+from . import html, images, materials, metrics, verdict
 from .methods import (BASELINE, DIRECT, MITSUBA_METHODS, MULTI_BOUNCE_BASELINE, PROJECT_METHODS, Method,
                       available_methods, is_multi_bounce)
 from .figures import sampler_demo_figures
@@ -39,25 +34,9 @@ from .plots import convergence_figure
 from .rendering import (SEED_CONVERGENCE, SEED_EQUAL_TIME, MethodRenderer, PassSet, Reference,
                         REFERENCE_CHUNKS, admissible_spp, interleaved_passes, load_for_settings,
                         render_reference, write_exr)
-
-
-@dataclasses.dataclass
-class CompareSettings:
-    """Settings of one ``compare`` run (the CLI options)."""
-
-    out: str = "report"
-    res: int = 192
-    spp: int = 8
-    passes: int = 32
-    ref_spp: int = 1024
-    samplers: tuple[str, ...] = ("independent",)
-    methods: tuple[str, ...] | None = None
-    envmap: str | None = None
-    max_depth: int = 2
-    seed: int = 0
-    convergence_max_spp: int | None = None  # None: 4 x spp; 0 disables the sweep
-    cache_dir: str = DEFAULT_CACHE_DIR
-    progress: bool = True
+from .schema import (CompareSettings, ConvergencePoint, EnvmapEntry, ErrorMaps, MethodResult, PassResult,
+                     ReferenceEntry, Report, RunResult, SamplerFigure, SceneResult, load_report, serialise,
+                     write_report)
 
 
 def environment_info() -> dict:
@@ -88,51 +67,6 @@ def convergence_spps(sampler: str, max_spp: int) -> list[int]:
     """Admissible sample counts roughly doubling from 1 to ``max_spp``."""
     values = sorted({admissible_spp(sampler, 2 ** i) for i in range(int(np.log2(max(1, max_spp))) + 1)})
     return [v for v in values if v <= max(max_spp, values[0])]
-
-
-@dataclasses.dataclass
-class PassResult:
-    """K passes of one method at one sample count (equal samples or equal time).
-
-    :param time_s: median wall time of a warm pass (s); ``times_s`` every pass's.
-    :param efficiency: 1 / (expected MSE x ``time_s``).
-    :param files: report-relative paths of the first pass (EXR, PNG) and of the mean of all
-        passes (EXR); every pass enters the statistics, only these are kept as images.
-    :param tail_worse_than_baseline: the tail statistics worse than the family baseline's
-        (``direct`` or ``path``) at the same kind of comparison (:func:`.metrics.tail_worse`).
-    """
-
-    spp: int
-    time_s: float
-    times_s: list[float]
-    efficiency: float
-    error: metrics.ErrorStats
-    tail: metrics.TailStats
-    bias: metrics.BiasTest
-    seeds: list[int]
-    files: dict[str, str]
-    tail_worse_than_baseline: list[str] = dataclasses.field(default_factory=list)
-    mse_ratio_vs_baseline: float | None = None
-    efficiency_ratio_vs_baseline: float | None = None
-    budget_method: str | None = None
-    time_budget_s: float | None = None
-
-
-@dataclasses.dataclass
-class MethodResult:
-    """One method of one scene and sampler."""
-
-    label: str
-    family: str
-    rays_per_sample: int
-    integrator: dict
-    scene_params: dict
-    compile_time_s: float | None
-    equal_spp: PassResult
-    equal_time: PassResult | None = None
-    convergence: list[dict] = dataclasses.field(default_factory=list)
-    #: A reference row (:attr:`.methods.Method.oracle`), not a contender.
-    oracle: bool = False
 
 
 def measure(passes: PassSet, reference: Reference, files: dict[str, str]) -> PassResult:
@@ -257,22 +191,18 @@ class SceneComparison:
             if ref.non_finite:
                 self.notes.append(f"the {family} reference has {ref.non_finite} non-finite pixel values: "
                                   f"those pixels are left out of every method's statistics")
-            ref_entries[family] = {"spp": ref.spp, "chunks": int(ref.chunks.shape[0]),
-                                   "cache_file": ref.path, "cached": ref.cached,
-                                   "render_time_s": ref.time_s, "file": self.rel(stem + ".exr"),
-                                   "png": self.rel(stem + ".png"),
-                                   "mean_variance": float(np.nanmean(np.where(np.isfinite(ref.variance),
-                                                                              ref.variance, np.nan))),
-                                   "integrator": "path, max_depth "
-                                   + ("2" if family == DIRECT else str(self.settings.max_depth))}
+            ref_entries[family] = ReferenceEntry(
+                spp=ref.spp, chunks=int(ref.chunks.shape[0]), cache_file=ref.path, cached=ref.cached,
+                render_time_s=ref.time_s, file=self.rel(stem + ".exr"), png=self.rel(stem + ".png"),
+                mean_variance=float(np.nanmean(np.where(np.isfinite(ref.variance), ref.variance, np.nan))),
+                integrator="path, max_depth " + ("2" if family == DIRECT else str(self.settings.max_depth)))
         runs = [self.run_sampler(sampler, methods, refs, exposure) for sampler in self.settings.samplers]
         figures = self.sampler_figures() if any(m.product_sampling for m in methods) else []
-        return {"scene": self.name, "path": self.path, "has_envmap": self.has_envmap,
-                "envmap": self.envmap_entry(),
-                "notes": self.notes, "exposure": exposure, "references": ref_entries, "runs": runs,
-                "sampler_figures": figures}
+        return SceneResult(scene=self.name, path=self.path, has_envmap=self.has_envmap,
+                           envmap=self.envmap_entry(), notes=self.notes, exposure=exposure,
+                           references=ref_entries, runs=runs, sampler_figures=figures)
 
-    def envmap_entry(self) -> dict | None:
+    def envmap_entry(self) -> EnvmapEntry | None:
         """The environment map's file name (``--envmap``, else the scene's) and a thumbnail."""
         if not self.has_envmap:
             return None
@@ -282,9 +212,9 @@ class SceneComparison:
         path = os.path.join(self.folder, "envmap.png")
         os.makedirs(self.folder, exist_ok=True)
         images.write_png(path, images.thumbnail(np.array(mi.traverse(self.envmap)["data"])[:, 1:-1]))
-        return {"name": name, "png": self.rel(path)}
+        return EnvmapEntry(name=name, png=self.rel(path))
 
-    def sampler_figures(self) -> list[dict]:
+    def sampler_figures(self) -> list[SamplerFigure]:
         """Warped sample points over their targets (SH lobe; lobe x this scene's map)."""
         if not self.has_envmap:
             return []
@@ -293,7 +223,7 @@ class SceneComparison:
             path = os.path.join(self.folder, f"sampler_points_{i}.png")
             with open(path, "wb") as f:
                 f.write(png)
-            out.append({"caption": caption, "png": self.rel(path)})
+            out.append(SamplerFigure(caption=caption, png=self.rel(path)))
         return out
 
     @staticmethod
@@ -311,7 +241,7 @@ class SceneComparison:
                           f"{type(err).__name__}: {first_line}")
 
     def run_sampler(self, sampler: str, methods: list[Method], refs: dict[str, Reference],
-                    exposure: float) -> dict:
+                    exposure: float) -> RunResult:
         s = self.settings
         settings = dict(self.render_settings, sampler=sampler)
         folder = os.path.join(self.folder, sampler)
@@ -384,9 +314,9 @@ class SceneComparison:
                     ref = refs[m.family].image
                     stem = os.path.join(folder, m.name, f"convergence_spp{spp}")
                     write_exr(stem + ".exr", image)
-                    results[m.name].convergence.append(
-                        {"spp": spp, "time_s": elapsed, "mse": metrics.mse(image, ref),
-                         "rel_mse": metrics.rel_mse(image, ref), "file": self.rel(stem + ".exr")})
+                    results[m.name].convergence.append(ConvergencePoint(
+                        spp=spp, time_s=elapsed, mse=metrics.mse(image, ref), rel_mse=metrics.rel_mse(image, ref),
+                        file=self.rel(stem + ".exr")))
                     self.bar.update(1)
 
         self.compare_with_baselines(results)
@@ -394,17 +324,17 @@ class SceneComparison:
         # What actually rendered, read back from the sensor the passes used.
         sensor = next(iter(renderers.values())).sensor if renderers else None
         breakdown = self.material_breakdown(renderers, methods, equal_spp, equal_time, refs)
-        run = {"sampler": sampler, "methods": results, "maps": maps, "crop": self.crop(methods, equal_spp),
-               "convergence_plot": None, "materials": breakdown,
-               "sampler_plugin": sensor.sampler().class_name() if sensor else None,
-               "film_size": [int(v) for v in sensor.film().size()] if sensor else None}
+        run = RunResult(sampler=sampler, methods=results, maps=maps, crop=self.crop(methods, equal_spp),
+                        convergence_plot=None, materials=breakdown,
+                        sampler_plugin=sensor.sampler().class_name() if sensor else None,
+                        film_size=[int(v) for v in sensor.film().size()] if sensor else None)
         if max_spp > 0:
             plot = convergence_figure({r.label: r.convergence for r in results.values()},
                                       f"{self.name}, {sampler} sampler")
             plot_path = os.path.join(folder, "convergence.png")
             with open(plot_path, "wb") as f:
                 f.write(plot)
-            run["convergence_plot"] = self.rel(plot_path)
+            run.convergence_plot = self.rel(plot_path)
         return run
 
     @staticmethod
@@ -460,20 +390,20 @@ class SceneComparison:
         return [*images.noisiest_window(variance, size), min(size, *variance.shape)]
 
     def write_maps(self, folder: str, methods: list[Method], equal_spp: dict[str, PassSet],
-                   refs: dict[str, Reference]) -> dict:
+                   refs: dict[str, Reference]) -> ErrorMaps:
         """False-colour per-pixel variance and relative-error maps (shared log scales)."""
         variance = {m.name: metrics.pixel_variance(equal_spp[m.name].images) for m in methods}
         error = {m.name: metrics.rel_squared_error_map(equal_spp[m.name].images, refs[m.family].image)
                  for m in methods}
-        out = {}
+        out = ErrorMaps(files={}, scale={})
         for kind, maps in (("variance", variance), ("rel_error", error)):
             vmin, vmax = images.log_range(list(maps.values()))
             for name, values in maps.items():
                 path = os.path.join(folder, name, f"{kind}_map.png")
                 images.write_png(path, images.false_colour(values, vmin, vmax))
                 write_exr(os.path.join(folder, name, f"{kind}_map.exr"), values[..., None])
-                out.setdefault(name, {})[kind] = self.rel(path)
-            out.setdefault("_scale", {})[kind] = [vmin, vmax]
+                out.files.setdefault(name, {})[kind] = self.rel(path)
+            out.scale[kind] = [vmin, vmax]
         return out
 
 
@@ -491,69 +421,47 @@ CSV_FIELDS = ["scene", "sampler", "method", "comparison", "spp", "mse", "rel_mse
               "compile_time_s"]
 
 
-def write_csv(path: str, report: dict) -> None:
-    """One row per scene x sampler x method x comparison (from the serialised report)."""
+def write_csv(path: str, report: Report) -> None:
+    """One row per scene x sampler x method x comparison (non-finite numbers left empty)."""
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
         writer.writeheader()
-        for scene in report["scenes"]:
-            for run in scene["runs"]:
-                for name, entry in run["methods"].items():
+        for scene in report.scenes:
+            for run in scene.runs:
+                for name, entry in run.methods.items():
                     for kind in ("equal_spp", "equal_time"):
-                        e = entry[kind]
-                        writer.writerow({
-                            "scene": scene["scene"], "sampler": run["sampler"], "method": name,
-                            "comparison": kind, "spp": e["spp"], "mse": e["error"]["mse"],
-                            "rel_mse": e["error"]["rel_mse"], "pixel_variance": e["error"]["pixel_variance"],
-                            "time_s": e["time_s"], "efficiency": e["efficiency"],
-                            "max_pixel": e["tail"]["max_pixel"],
-                            "abs_error_percentile": e["tail"]["abs_error_percentile"],
-                            "fireflies": e["tail"]["fireflies"], "bias_t": e["bias"]["t"],
-                            "bias_p_value": e["bias"]["p_value"], "bias_flagged": e["bias"]["flagged"],
-                            "mse_ratio_vs_baseline": e["mse_ratio_vs_baseline"],
-                            "efficiency_ratio_vs_baseline": e["efficiency_ratio_vs_baseline"],
-                            "compile_time_s": entry["compile_time_s"]})
+                        e = getattr(entry, kind)
+                        writer.writerow(serialise({
+                            "scene": scene.scene, "sampler": run.sampler, "method": name,
+                            "comparison": kind, "spp": e.spp, "mse": e.error.mse, "rel_mse": e.error.rel_mse,
+                            "pixel_variance": e.error.pixel_variance, "time_s": e.time_s,
+                            "efficiency": e.efficiency, "max_pixel": e.tail.max_pixel,
+                            "abs_error_percentile": e.tail.abs_error_percentile, "fireflies": e.tail.fireflies,
+                            "bias_t": e.bias.t, "bias_p_value": e.bias.p_value, "bias_flagged": e.bias.flagged,
+                            "mse_ratio_vs_baseline": e.mse_ratio_vs_baseline,
+                            "efficiency_ratio_vs_baseline": e.efficiency_ratio_vs_baseline,
+                            "compile_time_s": entry.compile_time_s}))
 
 
-def serialise(value):
-    """JSON form of the report: dataclasses as dicts, non-finite floats as None.
+def run_compare(scene_paths: list[str], settings: CompareSettings) -> Report:
+    """Run the comparison of every scene, write the report folder, return the report as saved.
 
-    Every NaN has a note in the report saying where it came from (:mod:`.metrics`), so the
-    JSON stays strict (``allow_nan=False``) and no ``nan`` is printed silently.
+    The verdict, the CSV and the page are made from the report as ``report.json`` holds it
+    (:func:`.schema.load_report` of its JSON form), so that they are what a saved report gives.
     """
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: serialise(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, dict):
-        return {k: serialise(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [serialise(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
-
-
-def run_compare(scene_paths: list[str], settings: CompareSettings) -> dict:
-    """Run the comparison of every scene, write the report folder, return the report (JSON form)."""
     os.makedirs(settings.out, exist_ok=True)
     started = time.time()
-    report = environment_info()
-    report["settings"] = settings
-    report["scenes"] = []
+    scenes = []
     for path, name in zip(scene_paths, scene_labels(scene_paths)):
         n_methods = len(available_methods(list(settings.methods) if settings.methods else None,
                                           multi_bounce=is_multi_bounce(settings.max_depth))[0])
         with tqdm(total=count_renders(settings, n_methods), disable=not settings.progress,
                   desc=os.path.basename(path), unit="render", file=sys.stderr) as bar:
-            report["scenes"].append(SceneComparison(path, settings, bar, name).run())
-    report["total_time_s"] = time.time() - started
-    report = serialise(report)
-    report["verdict"] = serialise(verdict.verdict(report))
-    with open(os.path.join(settings.out, "report.json"), "w") as f:
-        json.dump(report, f, indent=2, allow_nan=False)
+            scenes.append(SceneComparison(path, settings, bar, name).run())
+    measured = Report(**environment_info(), settings=settings, scenes=scenes, total_time_s=time.time() - started)
+    report = load_report(serialise(measured))
+    report.verdict = verdict.verdict(report)
+    write_report(os.path.join(settings.out, "report.json"), report)
     write_csv(os.path.join(settings.out, "metrics.csv"), report)
     html.write_html(os.path.join(settings.out, "index.html"), report)
     return report

@@ -1,6 +1,6 @@
 """The self-contained ``index.html`` of a comparison report.
 
-Written from the serialised report (the dict saved as ``report.json``). The
+Written from the report as saved (:class:`.schema.Report`). The
 verdict comes first, then the caveats, then one section per scene (its map,
 references, metrics, renders at full resolution with zoomed crops, error maps
 with their colour bars, convergence, warped sample points); settings and
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import html as html_escape
 import json
+import math
 import os
 
 import numpy as np
@@ -20,6 +21,7 @@ import numpy as np
 from . import metrics, verdict
 from .images import data_uri, false_colour, png_bytes
 from .methods import DIRECT
+from .schema import MaterialEntry, Report, RunResult, SceneResult, VerdictCell, serialise
 
 STYLE = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
@@ -46,7 +48,7 @@ def _e(text) -> str:
 
 def _num(value, digits: int = 4) -> str:
     """A report number; a missing one (non-finite, or not measured) says so instead of 'nan'."""
-    if value is None:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return '<span class="na" title="not a finite number or not measured: see the notes">n/a</span>'
     if isinstance(value, bool):
         return "yes" if value else '<span class="bad">NO</span>'
@@ -73,31 +75,29 @@ class _Page:
                 f'<figcaption>{cap}</figcaption></figure>')
 
 
-def _cell_html(cell: dict, label: str | None) -> str:
+def _cell_html(cell: VerdictCell, label: str | None) -> str:
     """A verdict cell: the numerator (named ``label``) against the denominator, highlighted when
     the interval says the numerator is the better of the two; the overall winner below."""
-    low, high = cell["low"], cell["high"]
-    better = low is not None and high is not None and (high < 1 if cell["quantity"] == "MSE" else low > 1)
-    best = "lowest MSE" if cell["quantity"] == "MSE" else "highest efficiency"
-    return (f'<td class="{"win" if better else "name"}"><b>{_e(label or cell["numerator"])}</b><br>'
-            f'<small>{_num(cell["ratio"], 3)}x the {cell["quantity"]} of {_e(cell["denominator"])} '
-            f'[{_num(cell["low"], 3)}, {_num(cell["high"], 3)}]; {best} of all: {_e(cell["winner"])}</small></td>')
+    best = "lowest MSE" if cell.quantity == "MSE" else "highest efficiency"
+    return (f'<td class="{"win" if cell.numerator_better else "name"}"><b>{_e(label or cell.numerator)}</b><br>'
+            f'<small>{_num(cell.ratio, 3)}x the {cell.quantity} of {_e(cell.denominator)} '
+            f'[{_num(cell.low, 3)}, {_num(cell.high, 3)}]; {best} of all: {_e(cell.winner)}</small></td>')
 
 
-def _verdict_section(report: dict) -> str:
-    rows = report["verdict"]
+def _verdict_section(report: Report) -> str:
+    rows = report.verdict
     if not rows:
         return "<p>No verdict: fewer than two methods ran in every scene.</p>"
     head = ("<tr><th>scene</th><th>sampler</th><th>lighting</th><th>equal samples (expected MSE)</th>"
             "<th>equal time (efficiency)</th><th>caveats</th></tr>")
     body, others = [], []
     for r in rows:
-        lighting = "direct" if r["family"] == DIRECT else "multi-bounce"
-        where = f'<td>{_e(r["scene"])}</td><td>{_e(r["sampler"])}</td><td>{lighting}</td>'
-        cells = "".join(_cell_html(r[kind], r.get("configuration")) for kind in ("equal_spp", "equal_time"))
-        body.append(f'<tr>{where}{cells}<td>{len(r["caveats"])}</td></tr>')
-        for other in r.get("others") or []:
-            cells = "".join(_cell_html(other[kind], other["configuration"]) for kind in ("equal_spp", "equal_time"))
+        lighting = "direct" if r.family == DIRECT else "multi-bounce"
+        where = f'<td>{_e(r.scene)}</td><td>{_e(r.sampler)}</td><td>{lighting}</td>'
+        cells = "".join(_cell_html(cell, r.configuration) for cell in (r.equal_spp, r.equal_time))
+        body.append(f'<tr>{where}{cells}<td>{len(r.caveats)}</td></tr>')
+        for other in r.others or []:
+            cells = "".join(_cell_html(cell, other.configuration) for cell in (other.equal_spp, other.equal_time))
             others.append(f"<tr>{where}{cells}</tr>")
     table = f'<table id="verdict">{head}{"".join(body)}</table>'
     legend = (f"<p>First: the project's plugin at its defaults (what switching the integrator gives) "
@@ -109,9 +109,9 @@ def _verdict_section(report: dict) -> str:
     if others:
         legend += ('<p>The project\'s other configurations, each against the same best Mitsuba strategy:</p>'
                    f'<table id="verdict-others">{head.replace("<th>caveats</th>", "")}{"".join(others)}</table>')
-    caveats = "".join(f"<li><b>{_e(r['scene'])}, {_e(r['sampler'])}"
-                      f"{'' if r['family'] == DIRECT else ', multi-bounce'}</b>: {_e(c)}</li>"
-                      for r in rows for c in r["caveats"])
+    caveats = "".join(f"<li><b>{_e(r.scene)}, {_e(r.sampler)}"
+                      f"{'' if r.family == DIRECT else ', multi-bounce'}</b>: {_e(c)}</li>"
+                      for r in rows for c in r.caveats)
     caveat_block = (f'<h3>Caveats</h3><ul class="note">{caveats}</ul>' if caveats
                     else "<p>No caveats: time budgets, tails, bias tests and reference noise are all fine.</p>")
     return table + legend + caveat_block
@@ -145,34 +145,34 @@ reference by more than noise explains; re-check it with more, independent passes
 """
 
 
-def _metrics_table(run: dict) -> str:
+def _metrics_table(run: RunResult) -> str:
     """One row per method and comparison; a tail flagged worse than the baseline's says how many
     of its statistics are (the texts in the cell's tooltip and in report.json)."""
-    cols = [("spp", lambda e: e["spp"]),
-            ("expected MSE", lambda e: e["error"]["mse"]),
-            ("pixel variance", lambda e: e["error"]["pixel_variance"]),
-            ("rel. MSE", lambda e: e["error"]["rel_mse"]),
-            ("time/pass (s)", lambda e: e["time_s"]),
-            ("MSE / base", lambda e: e["mse_ratio_vs_baseline"]),
-            ("eff. / base", lambda e: e["efficiency_ratio_vs_baseline"]),
-            ("brightest pixel", lambda e: e["tail"]["max_pixel"]),
-            (f"{metrics.TAIL_PERCENTILE:g} % |err|", lambda e: e["tail"]["abs_error_percentile"]),
-            ("fireflies", lambda e: e["tail"]["fireflies"]),
-            ("bias p", lambda e: e["bias"]["p_value"])]
+    cols = [("spp", lambda e: e.spp),
+            ("expected MSE", lambda e: e.error.mse),
+            ("pixel variance", lambda e: e.error.pixel_variance),
+            ("rel. MSE", lambda e: e.error.rel_mse),
+            ("time/pass (s)", lambda e: e.time_s),
+            ("MSE / base", lambda e: e.mse_ratio_vs_baseline),
+            ("eff. / base", lambda e: e.efficiency_ratio_vs_baseline),
+            ("brightest pixel", lambda e: e.tail.max_pixel),
+            (f"{metrics.TAIL_PERCENTILE:g} % |err|", lambda e: e.tail.abs_error_percentile),
+            ("fireflies", lambda e: e.tail.fireflies),
+            ("bias p", lambda e: e.bias.p_value)]
     head = "".join(f"<th>{c}</th>" for c, _ in cols)
     rows = [f'<tr><th>method</th><th>compile (s)</th><th>comparison</th>{head}<th>tail vs baseline</th></tr>']
-    for name, entry in run["methods"].items():
+    for name, entry in run.methods.items():
         # Oracle rows are references (the ideal product sampler), not contenders.
-        shown = f"{_e(name)} (reference row)" if entry.get("oracle") else _e(name)
+        shown = f"{_e(name)} (reference row)" if entry.oracle else _e(name)
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
-            e = entry[kind]
+            e = getattr(entry, kind)
             cells = "".join(f"<td>{_num(get(e))}</td>" for _, get in cols[:-1])
-            p = _num(e["bias"]["p_value"])
-            cells += f'<td class="bad" title="bias flag">{p} BIAS?</td>' if e["bias"]["flagged"] else f"<td>{p}</td>"
-            worse = e["tail_worse_than_baseline"]
+            p = _num(e.bias.p_value)
+            cells += f'<td class="bad" title="bias flag">{p} BIAS?</td>' if e.bias.flagged else f"<td>{p}</td>"
+            worse = e.tail_worse_than_baseline
             tail = (f'<td class="name bad" title="{_e("; ".join(worse))}">worse: {len(worse)} of 3</td>' if worse
                     else '<td class="name">ok</td>')
-            lead = (f'<td class="name" rowspan="2">{shown}</td><td rowspan="2">{_num(entry["compile_time_s"], 3)}</td>'
+            lead = (f'<td class="name" rowspan="2">{shown}</td><td rowspan="2">{_num(entry.compile_time_s, 3)}</td>'
                     if kind == "equal_spp" else "")
             rows.append(f'<tr>{lead}<td class="name">{title}</td>{cells}{tail}</tr>')
     return '<div class="scroll"><table>' + "".join(rows) + "</table></div>"
@@ -180,27 +180,27 @@ def _metrics_table(run: dict) -> str:
 
 def _colour_bar(lo: float, hi: float) -> str:
     """The log colour scale of the false-colour maps, from ``lo`` to ``hi``."""
-    if lo is None or hi is None:
+    if not (math.isfinite(lo) and math.isfinite(hi)):
         return ""
     ramp = false_colour(np.geomspace(max(lo, 1e-30), max(hi, 10 * max(lo, 1e-30)), 256)[None].repeat(12, 0), lo, hi)
     return (f'<div class="bar">{_num(lo, 3)}<img src="{data_uri(png_bytes(ramp))}" alt="colour scale">'
             f'{_num(hi, 3)} (log scale, inferno)</div>')
 
 
-def _render_figures(page: _Page, run: dict, kind: str) -> str:
+def _render_figures(page: _Page, run: RunResult, kind: str) -> str:
     """The first pass of every method at full resolution (integer zoom to at least 256 px wide),
     then the same zoomed crop of each, so that noise can be judged by eye."""
-    width = run["film_size"][0] if run.get("film_size") else 128
+    width = run.film_size[0] if run.film_size else 128
     zoom = max(1, 256 // width)
     full, crops = [], []
-    x, y, size = run.get("crop") or (0, 0, 0)
+    x, y, size = run.crop or (0, 0, 0)
     crop_zoom = max(1, 128 // max(size, 1))
-    for name, entry in run["methods"].items():
-        e = entry[kind]
-        src = page.embed(e["files"]["first_pass_png"])
-        caption = f"{name}, {e['spp']} spp, pass MSE {_num(e['error']['mse_per_pass'][0], 3)}"
+    for name, entry in run.methods.items():
+        e = getattr(entry, kind)
+        src = page.embed(e.files["first_pass_png"])
+        caption = f"{name}, {e.spp} spp, pass MSE {_num(e.error.mse_per_pass[0], 3)}"
         full.append(f'<figure><img src="{src}" alt="{_e(caption)}" style="width:{width * zoom}px">'
-                    f'<figcaption>{_e(caption)} (<a href="{_e(e["files"]["first_pass"])}">EXR</a>)'
+                    f'<figcaption>{_e(caption)} (<a href="{_e(e.files["first_pass"])}">EXR</a>)'
                     f'</figcaption></figure>')
         if size:
             crops.append(f'<figure><div class="crop" style="width:{size * crop_zoom}px;height:{size * crop_zoom}px">'
@@ -212,51 +212,51 @@ def _render_figures(page: _Page, run: dict, kind: str) -> str:
     return f"<div class='row'>{''.join(full)}</div>{where}<div class='row'>{''.join(crops)}</div>"
 
 
-def _materials_table(rows: list[dict]) -> str:
+def _materials_table(rows: list[MaterialEntry]) -> str:
     """Per-material squared-error ratios against the best Mitsuba strategy there, and error shares."""
     if not rows:
         return ""
-    project = list(rows[0]["error_ratio"])
+    project = list(rows[0].error_ratio)
     head = "".join(f"<th>{_e(n)}: error / best Mitsuba, equal samples</th><th>{_e(n)}: equal time</th>"
                    f"<th>{_e(n)}: share of its error</th>" for n in project)
     out = [f"<table><tr><th>material</th><th>plugin</th><th>pixels</th><th>best Mitsuba strategy there "
            f"(equal samples / equal time)</th><th>its share of its error</th>{head}</tr>"]
     for row in rows:
-        best = row["best_mitsuba"]
+        best = row.best_mitsuba
         cells = []
         for n in project:
             for kind in ("equal_spp", "equal_time"):
-                ratio = row["error_ratio"][n].get(kind)
+                ratio = row.error_ratio[n].get(kind)
                 style = ' class="bad"' if ratio is not None and ratio > 1 else ""
                 cells.append(f"<td{style}>{_num(ratio, 3)}</td>")
-            cells.append(f"<td>{_num(row['error_share'].get(n), 2)}</td>")
-        out.append(f'<tr><td class="name">{_e(row["name"])}</td><td class="name">{_e(row["plugin"])}</td>'
-                   f'<td>{100 * row["pixel_share"]:.1f} %</td>'
+            cells.append(f"<td>{_num(row.error_share.get(n), 2)}</td>")
+        out.append(f'<tr><td class="name">{_e(row.name)}</td><td class="name">{_e(row.plugin)}</td>'
+                   f'<td>{100 * row.pixel_share:.1f} %</td>'
                    f'<td class="name">{_e(best.get("equal_spp"))} / {_e(best.get("equal_time"))}</td>'
-                   f'<td>{_num(row["error_share"].get(best.get("equal_spp")), 2)}</td>{"".join(cells)}</tr>')
+                   f'<td>{_num(row.error_share.get(best.get("equal_spp")), 2)}</td>{"".join(cells)}</tr>')
     return "".join(out) + "</table>"
 
 
-def _scene_section(page: _Page, scene: dict) -> None:
-    page.add(f"<h2>Scene {_e(scene['scene'])}</h2><p>{_e(scene['path'])}</p>")
-    env = scene.get("envmap")
+def _scene_section(page: _Page, scene: SceneResult) -> None:
+    page.add(f"<h2>Scene {_e(scene.scene)}</h2><p>{_e(scene.path)}</p>")
+    env = scene.envmap
     if env:
-        page.add(f'<p class="envmap"><img src="{page.embed(env["png"])}" alt="environment map {_e(env["name"])}" '
-                 f'style="width:256px">Environment map: <b>{_e(env["name"])}</b></p>')
+        page.add(f'<p class="envmap"><img src="{page.embed(env.png)}" alt="environment map {_e(env.name)}" '
+                 f'style="width:256px">Environment map: <b>{_e(env.name)}</b></p>')
     else:
         page.add('<p class="envmap">No environment map.</p>')
-    for note in scene["notes"]:
+    for note in scene.notes:
         page.add(f'<p class="note">{_e(note)}</p>')
-    refs = "".join(page.image(r["png"], f"reference ({r['integrator']}, {r['spp']} spp in {r['chunks']} "
-                              f"chunks, mean variance {_num(r['mean_variance'], 3)})", r["file"])
-                   for r in scene["references"].values())
+    refs = "".join(page.image(r.png, f"reference ({r.integrator}, {r.spp} spp in {r.chunks} "
+                              f"chunks, mean variance {_num(r.mean_variance, 3)})", r.file)
+                   for r in scene.references.values())
     page.add(f'<div class="row">{refs}</div>')
-    for run in scene["runs"]:
-        rendered = (f" (rendered by Mitsuba's {_e(run['sampler_plugin'])}, film "
-                    f"{run['film_size'][0]} x {run['film_size'][1]})" if run.get("sampler_plugin") else "")
-        page.add(f"<h3>{_e(scene['scene'])}: {_e(run['sampler'])} sampler{rendered}</h3>")
+    for run in scene.runs:
+        rendered = (f" (rendered by Mitsuba's {_e(run.sampler_plugin)}, film "
+                    f"{run.film_size[0]} x {run.film_size[1]})" if run.sampler_plugin else "")
+        page.add(f"<h3>{_e(scene.scene)}: {_e(run.sampler)} sampler{rendered}</h3>")
         page.add(_metrics_table(run))
-        for family, rows in (run.get("materials") or {}).items():
+        for family, rows in (run.materials or {}).items():
             page.add(f"<h4>Per material ({_e(family)} family): where each method wins and loses</h4>"
                      "<p>Each pixel counts for the material its centre sees. An error ratio below 1 "
                      "beats every Mitsuba strategy on that material's pixels (the best one there is "
@@ -267,27 +267,27 @@ def _scene_section(page: _Page, scene: dict) -> None:
             page.add(f"<h4>Renders at {title} (first pass)</h4>{_render_figures(page, run, kind)}")
         for kind, title in (("variance", "Per-pixel variance across passes (equal samples, tails included)"),
                             ("rel_error", "Per-pixel relative squared error (equal samples)")):
-            lo, hi = run["maps"]["_scale"][kind]
-            figs = [page.image(maps[kind], name) for name, maps in run["maps"].items() if name != "_scale"]
+            lo, hi = run.maps.scale[kind]
+            figs = [page.image(maps[kind], name) for name, maps in run.maps.files.items()]
             page.add(f"<h4>{title}; shared colour scale</h4>{_colour_bar(lo, hi)}"
                      f"<div class='row'>{''.join(figs)}</div>")
-        if run["convergence_plot"]:
+        if run.convergence_plot:
             page.add("<h4>Convergence (one render per spp)</h4>")
-            page.add(f'<img src="{page.embed(run["convergence_plot"])}" alt="convergence">')
+            page.add(f'<img src="{page.embed(run.convergence_plot)}" alt="convergence">')
         else:
             page.add("<p>No convergence sweep with this sampler (it runs with the first sampler "
                      "only: the others recompile their kernels for every sample count).</p>")
-    if scene.get("sampler_figures"):
+    if scene.sampler_figures:
         page.add("<h3>Warped sample points (an illustration, not this scene's BSDF)</h3><p>Hierarchical "
                  "warping of an 8-band Phong lobe (s = 20) alone and times this scene's environment, on the "
                  "equal-area (phi, z) grid (square-root colour scale). From a Hammersley set the warped points "
                  "stay stratified: the warp preserves the input's low discrepancy.</p>")
-        for fig in scene["sampler_figures"]:
-            page.add(f'<img src="{page.embed(fig["png"])}" alt="{_e(fig["caption"])}" style="max-width:100%">')
+        for fig in scene.sampler_figures:
+            page.add(f'<img src="{page.embed(fig.png)}" alt="{_e(fig.caption)}" style="max-width:100%">')
 
 
-def write_html(path: str, report: dict) -> None:
-    """Write the report page for ``report`` (the dict saved as report.json) to ``path``."""
+def write_html(path: str, report: Report) -> None:
+    """Write the report page for ``report`` to ``path`` (the folder of its images)."""
     page = _Page(os.path.dirname(os.path.abspath(path)))
     page.add(f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>mitsuba-shsampling comparison"
              f"</title><style>{STYLE}</style></head><body>")
@@ -295,12 +295,12 @@ def write_html(path: str, report: dict) -> None:
     page.add("<h2>Verdict</h2>")
     page.add(_verdict_section(report))
     page.add(HOW_TO_READ)
-    for scene in report["scenes"]:
+    for scene in report.scenes:
         _scene_section(page, scene)
     page.add('<p>Data: <a href="report.json">report.json</a>, <a href="metrics.csv">metrics.csv</a></p>')
     page.add("<details><summary>Settings, machine and versions</summary><pre>" + _e(json.dumps({
-        "machine": report["machine"], "variant": report["variant"], "versions": report["versions"],
-        "settings": report["settings"], "total_time_s": round(report.get("total_time_s") or 0.0, 1)},
+        "machine": report.machine, "variant": report.variant, "versions": report.versions,
+        "settings": serialise(report.settings), "total_time_s": round(report.total_time_s or 0.0, 1)},
         indent=1)) + "</pre></details>")
     page.add("</body></html>")
     with open(path, "w") as f:

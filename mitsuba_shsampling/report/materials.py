@@ -26,36 +26,14 @@ centre falls.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 import drjit as dr
 import mitsuba as mi
 
+from .schema import MaterialEntry
 
 BACKGROUND = "background"
-
-
-@dataclasses.dataclass
-class MaterialEntry:
-    """One material's row of the breakdown.
-
-    :param name: the BSDF's id in the scene, or the ids of the shapes that use it.
-    :param plugin: Mitsuba's class name of the BSDF (``RoughConductor``, ``BumpMap``, ...).
-    :param pixel_share: fraction of the image's pixels whose centre sees it.
-    :param error_ratio: method -> {"equal_spp": r, "equal_time": r}: the method's expected
-        squared error summed over these pixels, over the best Mitsuba strategy's.
-    :param best_mitsuba: {"equal_spp": name, "equal_time": name} of that strategy.
-    :param error_share: method -> share of the method's equal-sample image error on these pixels.
-    """
-
-    name: str
-    plugin: str
-    pixel_share: float
-    error_ratio: dict[str, dict[str, float | None]]
-    best_mitsuba: dict[str, str | None]
-    error_share: dict[str, float | None]
 
 
 def _plugin_name(bsdf: mi.BSDF) -> str:

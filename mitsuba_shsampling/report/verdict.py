@@ -1,7 +1,7 @@
 """The verdict of a comparison: who wins at equal samples and at equal time, by how much, how sure.
 
-Works on the serialised report (the dict written as ``report.json``), so it can
-be recomputed from a saved report. For each scene, sampler and method family:
+Works on the report as saved (:func:`.schema.load_report` of ``report.json``), so it
+can be recomputed from a saved report. For each scene, sampler and method family:
 
 - **equal samples**: lowest expected MSE (mean over passes of each pass's MSE);
 - **equal time**: highest efficiency 1 / (MSE x time per pass) of the equal-time renders.
@@ -22,13 +22,14 @@ Reference rows (the oracle) are no contenders: they appear in the caveats only.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 
 from .methods import DEFAULT_PLUGIN_METHOD, MITSUBA, PROJECT, REFERENCE, role_of
 from .metrics import BIAS_ALPHA, TAIL_PERCENTILE
+from .schema import (MethodResult, PassResult, Report, RunResult, VerdictCell, VerdictOther, VerdictRow,
+                     load_report)
 
 #: Bootstrap resamples and the two-sided coverage of the interval.
 BOOTSTRAP_RESAMPLES = 2000
@@ -45,62 +46,11 @@ MIN_EQUAL_TIME_SPP = 2
 MAX_REFERENCE_NOISE = 0.1
 
 
-@dataclasses.dataclass
-class VerdictCell:
-    """One comparison kind of one verdict row.
-
-    ``ratio`` is ``numerator``'s quantity over ``denominator``'s: MSE at equal samples (< 1:
-    the numerator wins), efficiency at equal time (> 1: the numerator wins);
-    [``low``, ``high``] its bootstrap interval. All three are NaN (``n/a`` in the report) when
-    the ratio has no finite value: a zero MSE (an all-black environment renders every pixel
-    exactly) or a non-finite one (every pixel of a pass non-finite).
-    """
-
-    quantity: str
-    winner: str
-    winner_is_project: bool
-    numerator: str
-    denominator: str
-    ratio: float
-    low: float
-    high: float
-
-    @property
-    def decided(self) -> bool:
-        """The interval excludes 1: the data decide between numerator and denominator."""
-        return math.isfinite(self.low) and math.isfinite(self.high) and not (self.low <= 1.0 <= self.high)
-
-
-@dataclasses.dataclass
-class VerdictOther:
-    """Another project row of a verdict row: its method, plugin configuration and cells."""
-
-    method: str
-    configuration: str
-    equal_spp: VerdictCell
-    equal_time: VerdictCell
-
-
-@dataclasses.dataclass
-class VerdictRow:
-    """One scene, sampler and family. ``configuration`` is how a user writes the first line's
-    project method (None when no project method ran); ``others`` the project's other rows."""
-
-    scene: str
-    sampler: str
-    family: str
-    equal_spp: VerdictCell
-    equal_time: VerdictCell
-    caveats: list[str]
-    configuration: str | None = None
-    others: list[VerdictOther] = dataclasses.field(default_factory=list)
-
-
-def configuration(name: str, result: dict, family: str) -> str:
+def configuration(name: str, result: MethodResult, family: str) -> str:
     """The plugin configuration of method ``name`` as a user writes it: ``sh_direct (defaults)``
     for :data:`.methods.DEFAULT_PLUGIN_METHOD`, else the plugin and the parameters the method
     sets, ``sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false)``."""
-    integrator = dict(result.get("integrator") or {"type": name})
+    integrator = dict(result.integrator or {"type": name})
     plugin = integrator.pop("type", name)
     if name == DEFAULT_PLUGIN_METHOD.get(family) or not integrator:
         return f"{plugin} (defaults)"
@@ -113,10 +63,10 @@ def _ratio(x: float, y: float) -> float:
     return x / y if math.isfinite(x) and math.isfinite(y) and y > 0 else math.nan
 
 
-def _paired_bootstrap(statistic, a: dict, b: dict, seed: int = 0) -> tuple[float, float]:
+def _paired_bootstrap(statistic, a: PassResult, b: PassResult, seed: int = 0) -> tuple[float, float]:
     """Interval of statistic(a_resampled) / statistic(b_resampled), pass indices shared
     (NaN if any resampled ratio is: see :class:`VerdictCell`)."""
-    k = min(len(a["error"]["mse_per_pass"]), len(b["error"]["mse_per_pass"]))
+    k = min(len(a.error.mse_per_pass), len(b.error.mse_per_pass))
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, k, size=(BOOTSTRAP_RESAMPLES, k))
     ratios = np.array([_ratio(statistic(a, i), statistic(b, i)) for i in idx])
@@ -126,24 +76,24 @@ def _paired_bootstrap(statistic, a: dict, b: dict, seed: int = 0) -> tuple[float
     return float(np.quantile(ratios, tail)), float(np.quantile(ratios, 1 - tail))
 
 
-def _mse(entry: dict, idx=None) -> float:
-    # A pass whose every pixel was non-finite has no MSE (None in report.json): NaN here.
-    values = np.array([math.nan if v is None else v for v in entry["error"]["mse_per_pass"]], dtype=float)
+def _mse(entry: PassResult, idx=None) -> float:
+    # A pass whose every pixel was non-finite has no MSE: NaN.
+    values = np.array(entry.error.mse_per_pass, dtype=float)
     return float(values.mean() if idx is None else values[idx].mean())
 
 
-def _efficiency(entry: dict, idx=None) -> float:
-    times = np.asarray(entry["times_s"])
+def _efficiency(entry: PassResult, idx=None) -> float:
+    times = np.asarray(entry.times_s)
     time_s = float(np.median(times if idx is None else times[idx]))
     denom = _mse(entry, idx) * time_s
     return 1.0 / denom if denom > 0 else (math.inf if denom == 0 else math.nan)
 
 
-def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str],
+def _cell(results: dict[str, MethodResult], kind: str, project: list[str], mitsuba: list[str],
           lead: str | None = None) -> VerdictCell:
     """The contest of ``kind``: its winner, and ``lead`` (default: the best project method)
     over the best Mitsuba strategy, or with no project method the winner over the runner-up."""
-    entries = {n: results[n][kind] for n in project + mitsuba}
+    entries = {n: getattr(results[n], kind) for n in project + mitsuba}
     if kind == "equal_spp":
         quantity, statistic, sign = "MSE", _mse, 1.0
     else:
@@ -168,76 +118,80 @@ def _cell(results: dict, kind: str, project: list[str], mitsuba: list[str],
                        ratio=_ratio(statistic(a), statistic(b)), low=low, high=high)
 
 
-def _caveats(scene: dict, run: dict, names: list[str], baseline: str, contenders: list[str],
+def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, contenders: list[str],
              shown: list[str]) -> list[str]:
     """Notes on the run's methods ``names``; the equal-time resolution only of the ``contenders``
     (a reference row at 1 spp within the baseline's time is what it costs, not a coarse budget);
     heavy tails only of the methods the verdict ``shown`` (a baseline nobody would choose, such as
     ``bsdf_only``, is no reason to doubt the verdict)."""
-    results = run["methods"]
+    results = run.methods
     notes = []
     # The budget each row was given (stored with it: the baseline itself may have
     # failed in the equal-time phase and left the run).
-    base_time = (results[names[0]].get("equal_time") or {}).get("time_budget_s") or 0.0
+    first_timed = results[names[0]].equal_time
+    base_time = (first_timed.time_budget_s if first_timed else None) or 0.0
     if 0.0 < base_time < MIN_PASS_TIME_S:
         notes.append(f"time budget too small to be meaningful: a {baseline} pass takes "
                      f"{1e3 * base_time:.1f} ms (per-launch overhead and timer noise weigh on every "
                      f"time; raise --res or --spp)")
     base = results.get(baseline)
-    if base and base["equal_spp"].get("time_s") and base["equal_time"].get("time_s"):
-        per_sample = [base[k]["time_s"] / base[k]["spp"] for k in ("equal_spp", "equal_time")]
+    if base and base.equal_spp.time_s and base.equal_time.time_s:
+        per_sample = [p.time_s / p.spp for p in (base.equal_spp, base.equal_time)]
         drift = max(per_sample) / min(per_sample)
         if drift > MAX_TIME_DRIFT:
             notes.append(f"time budget unreliable: a {baseline} pass took {drift:.1f}x as long at equal "
-                         f"samples ({1e3 * base['equal_spp']['time_s']:.1f} ms) as at equal time "
-                         f"({1e3 * base['equal_time']['time_s']:.1f} ms), so the machine's speed changed "
+                         f"samples ({1e3 * base.equal_spp.time_s:.1f} ms) as at equal time "
+                         f"({1e3 * base.equal_time.time_s:.1f} ms), so the machine's speed changed "
                          f"during the run (other load, a cold start) and every time ratio with it; "
                          f"rerun on a quiet machine, or with more --passes")
-    spps = {n: results[n]["equal_time"]["spp"] for n in contenders}
+    spps = {n: results[n].equal_time.spp for n in contenders}
     if min(spps.values()) <= MIN_EQUAL_TIME_SPP:
         listing = ", ".join(f"{n} {s}" for n, s in spps.items())
         notes.append(f"equal-time spp too coarse to compare ({listing}): raise --spp")
     kinds = (("equal_spp", "equal samples"), ("equal_time", "equal time"))
-    heavy = [n for n in shown if any(results[n][k]["tail_worse_than_baseline"] for k, _ in kinds)]
+    heavy = [n for n in shown if any(getattr(results[n], k).tail_worse_than_baseline for k, _ in kinds)]
     if heavy:
-        passes = len(results[names[0]]["equal_spp"]["times_s"])
+        passes = len(results[names[0]].equal_spp.times_s)
         notes.append(f"heavy tails: {', '.join(heavy)} {'is' if len(heavy) == 1 else 'are'} worse than "
                      f"{baseline} in the brightest pixel, the {TAIL_PERCENTILE:g} % error or the firefly "
                      f"count (the scene's table says which); rare bright samples dominate such an "
                      f"error, so it may be larger than {passes} passes show")
     for n in names:
-        flagged = [(title, results[n][k]["bias"]["p_value"]) for k, title in kinds if results[n][k]["bias"]["flagged"]]
+        flagged = [(title, getattr(results[n], k).bias.p_value) for k, title in kinds
+                   if getattr(results[n], k).bias.flagged]
         if flagged:
             where = ", ".join(f"{title} (p = {p:.2g})" for title, p in flagged)
             notes.append(
                 f"bias flag: {n} at {where}. Its average image differs from the reference by more than "
                 f"noise explains: a bias, samples so heavy-tailed that the passes missed the rare bright "
                 f"ones, or chance (probability {BIAS_ALPHA:g} per test for an unbiased method). Re-check "
-                f"with independent seeds and more passes: python scripts/bias_check.py {scene['path']} "
+                f"with independent seeds and more passes: python scripts/bias_check.py {scene_path} "
                 f"--method {n} --passes 64")
-        bad = sum(results[n][k]["error"]["non_finite"] for k, _ in kinds)
+        bad = sum(getattr(results[n], k).error.non_finite for k, _ in kinds)
         if bad:
             notes.append(f"{n} rendered {bad} non-finite pixel values (NaN or infinite); they are left "
                          f"out of its statistics")
     return notes
 
 
-def verdict(report: dict) -> list[VerdictRow]:
-    """One row per scene x sampler x method family of ``report`` (the report.json dict);
-    reference rows (:data:`.methods.REFERENCE`) take no part in the contest."""
+def verdict(report: Report | dict) -> list[VerdictRow]:
+    """One row per scene x sampler x method family of ``report`` (or of the report.json dict,
+    read by :func:`.schema.load_report`); reference rows (:data:`.methods.REFERENCE`) take no
+    part in the contest."""
+    report = load_report(report)
     rows = []
-    for scene in report["scenes"]:
-        for run in scene["runs"]:
-            results = run["methods"]
-            for family in dict.fromkeys(r["family"] for r in results.values()):
-                names = [n for n, r in results.items() if r["family"] == family]
+    for scene in report.scenes:
+        for run in scene.runs:
+            results = run.methods
+            for family in dict.fromkeys(r.family for r in results.values()):
+                names = [n for n, r in results.items() if r.family == family]
                 contenders = [n for n in names if role_of(n) != REFERENCE]
                 project = [n for n in contenders if role_of(n) == PROJECT]
                 mitsuba = [n for n in contenders if role_of(n) == MITSUBA]
                 if len(contenders) < 2:
                     continue
-                baseline = results[names[0]]["equal_time"]["budget_method"]
-                ref = scene["references"].get(family)
+                baseline = results[names[0]].equal_time.budget_method
+                ref = (scene.references or {}).get(family)
                 lead = DEFAULT_PLUGIN_METHOD.get(family) if DEFAULT_PLUGIN_METHOD.get(family) in project \
                     else (project[0] if project else None)
                 cell_spp = _cell(results, "equal_spp", project, mitsuba, lead)
@@ -249,10 +203,10 @@ def verdict(report: dict) -> list[VerdictRow]:
                 shown = list(dict.fromkeys([c.numerator for c in (cell_spp, cell_time)]
                                            + [c.denominator for c in (cell_spp, cell_time)]
                                            + [o.method for o in others]))
-                caveats = _caveats(scene, run, names, baseline, contenders, shown)
-                winner_mse = results[cell_spp.winner]["equal_spp"]["error"]["mse"]
-                ref_noise = ref["mean_variance"] if ref else None  # None: no finite reference pixel
-                if winner_mse and ref_noise and ref_noise > MAX_REFERENCE_NOISE * winner_mse:
+                caveats = _caveats(scene.path, run, names, baseline, contenders, shown)
+                winner_mse = results[cell_spp.winner].equal_spp.error.mse
+                ref_noise = ref.mean_variance if ref else math.nan  # NaN: no finite reference pixel
+                if winner_mse > 0 and ref_noise > MAX_REFERENCE_NOISE * winner_mse:
                     caveats.append(f"the reference's own noise is {ref_noise / winner_mse:.0%} "
                                    f"of the winner's MSE: every MSE ratio is pulled towards 1 (raise --ref-spp)")
                 for cell, title in ((cell_spp, "equal samples"), (cell_time, "equal time")):
@@ -264,7 +218,7 @@ def verdict(report: dict) -> list[VerdictRow]:
                     elif not cell.decided:
                         caveats.append(f"at {title} the {INTERVAL:.0%} interval of {cell.numerator} "
                                        f"vs {cell.denominator} contains 1: no clear winner between them")
-                rows.append(VerdictRow(scene=scene["scene"], sampler=run["sampler"], family=family,
+                rows.append(VerdictRow(scene=scene.scene, sampler=run.sampler, family=family,
                                        equal_spp=cell_spp, equal_time=cell_time, caveats=caveats,
                                        configuration=(configuration(lead, results[lead], family)
                                                       if lead and mitsuba else None),
@@ -272,7 +226,7 @@ def verdict(report: dict) -> list[VerdictRow]:
     return rows
 
 
-def ratio_with_interval(kind: str, a: dict, b: dict) -> tuple[float, float, float]:
+def ratio_with_interval(kind: str, a: PassResult, b: PassResult) -> tuple[float, float, float]:
     """(ratio, low, high): ``a``'s expected MSE over ``b``'s for ``kind`` "equal_spp", its
     efficiency over ``b``'s for "equal_time" (entries of one run), with the verdict's 90 %
     paired bootstrap interval over passes."""

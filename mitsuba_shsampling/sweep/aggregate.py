@@ -1,7 +1,7 @@
 """The aggregate report of a sweep: one summary row per cell, heat maps, JSON/CSV/HTML.
 
-Per cell (read from its compare ``report.json``; every field is optional, so reports
-of older or newer compare versions still summarise):
+Per cell (read from its compare ``report.json`` by :func:`~..report.schema.load_report`, which
+reads older and newer formats, a missing field as unknown, so every stored cell still summarises):
 
 - the **winner**: the method of highest equal-time efficiency (1 / (MSE x time)), reference
   rows (the exact tabulated product, :data:`~..report.methods.REFERENCE`) left out;
@@ -12,8 +12,8 @@ of older or newer compare versions still summarise):
 - per method, the equal-time efficiency ratio and the equal-spp MSE ratio against those
   bests, with an uncertainty (one standard error) when the report lists per-pass MSEs
   (``error.mse_per_pass``): delta method over the paired passes, wall-time noise not included;
-- the bias status (``bias.flagged``, or ``bias_ok`` of older reports) and the tail status
-  (``tail_worse_than_baseline``) of the equal-spp and equal-time renders;
+- the bias status (``bias.flagged``) and the tail status (``tail_worse_than_baseline``) of the
+  equal-spp and equal-time renders;
 - the report's own verdict where it has one: the project's plugin at its defaults against the best of
   Mitsuba's strategies, ratio and 90 % paired-bootstrap interval.
 
@@ -32,7 +32,8 @@ import os
 
 import numpy as np
 
-from ..report.methods import METHODS, MITSUBA, REFERENCE, mitsuba_strategies, role_of
+from ..report.methods import DIRECT, METHODS, MITSUBA, REFERENCE, mitsuba_strategies, role_of
+from ..report.schema import PassResult, Report, load_report, serialise
 from .store import CellStore
 
 #: The method whose efficiency ratio the heat maps show.
@@ -41,24 +42,15 @@ HEATMAP_METHOD = "sh_direct"
 KIND = "mitsuba-shsampling sweep aggregate"
 
 
-def _number(entry, key: str) -> float | None:
-    value = entry.get(key) if isinstance(entry, dict) else None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        return None
-    return float(value)
+def _finite(value: float | None) -> float | None:
+    """``value`` if it is a finite number, else None (unknown: missing, or not finite)."""
+    return value if value is not None and math.isfinite(value) else None
 
 
-def _error(entry: dict) -> dict:
-    """Where a report entry keeps its MSE statistics (``error`` since the expected-error report)."""
-    return entry["error"] if isinstance(entry.get("error"), dict) else entry
-
-
-def mse_per_pass(entry: dict) -> np.ndarray | None:
+def mse_per_pass(entry: PassResult | None) -> np.ndarray | None:
     """The entry's per-pass MSEs (K >= 2 finite values), or None if the report has none."""
-    values = _error(entry).get("mse_per_pass")
-    if not isinstance(values, list) or len(values) < 2:
-        return None
-    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+    values = entry.error.mse_per_pass if entry is not None and entry.error is not None else None
+    if values is None or len(values) < 2:
         return None
     values = np.asarray(values, dtype=np.float64)
     return values if np.all(np.isfinite(values)) and values.mean() > 0 else None
@@ -78,23 +70,18 @@ def ratio_stderr(ratio: float, a: np.ndarray | None, b: np.ndarray | None) -> fl
     return ratio * math.sqrt(max(rel_var, 0.0))
 
 
-def _flag(entry, key: str, inverted_key: str | None = None) -> bool | None:
-    """``entry[key]`` as a bool; with ``inverted_key``, ``not entry[inverted_key]["flagged"]`` instead."""
-    if not isinstance(entry, dict):
+def _bias_ok(entry: PassResult | None) -> bool | None:
+    """The bias test passed; None if the entry has none."""
+    if entry is None or entry.bias is None or entry.bias.flagged is None:
         return None
-    if isinstance(entry.get(key), bool):
-        return entry[key]
-    nested = entry.get(inverted_key) if inverted_key else None
-    if isinstance(nested, dict) and isinstance(nested.get("flagged"), bool):
-        return not nested["flagged"]
-    return None
+    return not entry.bias.flagged
 
 
-def _tail_ok(entry: dict) -> bool | None:
-    """No tail statistic worse than the baseline's: ``tail_worse_than_baseline`` lists the worse
-    ones (an empty list: none); None if the entry has no such field."""
-    worse = entry.get("tail_worse_than_baseline")
-    return not worse if isinstance(worse, (list, bool)) else None
+def _tail_ok(entry: PassResult | None) -> bool | None:
+    """No tail statistic worse than the baseline's; None if the entry does not say."""
+    if entry is None or entry.tail_worse_than_baseline is None:
+        return None
+    return not entry.tail_worse_than_baseline
 
 
 def _all(values: list[bool | None]) -> bool | None:
@@ -102,19 +89,20 @@ def _all(values: list[bool | None]) -> bool | None:
     return False if False in values else (True if all(v is True for v in values) else None)
 
 
-def _verdict(report: dict, scene: str, sampler: str) -> dict | None:
+def _verdict(report: Report, scene: str, sampler: str) -> dict | None:
     """The report's own verdict row of the direct-lighting family (its bootstrap intervals)."""
-    for row in report.get("verdict") or []:
-        if isinstance(row, dict) and row.get("scene") == scene and row.get("sampler") == sampler \
-                and row.get("family", "direct") == "direct":
+    for row in report.verdict or []:
+        if row is not None and (row.scene, row.sampler, row.family) == (scene, sampler, DIRECT):
             keep = ("winner", "numerator", "denominator", "ratio", "low", "high")
-            return {kind: {k: row[kind].get(k) for k in keep} for kind in ("equal_spp", "equal_time")
-                    if isinstance(row.get(kind), dict)}
+            return {kind: {k: serialise(getattr(cell, k)) for k in keep}
+                    for kind, cell in (("equal_spp", row.equal_spp), ("equal_time", row.equal_time))
+                    if cell is not None}
     return None
 
 
-def summarise_report(report: dict) -> dict:
-    """Summary of a one-scene, one-sampler compare report (see the module docstring).
+def summarise_report(report: Report | dict) -> dict:
+    """Summary of a one-scene, one-sampler compare report (see the module docstring), typed or
+    as the report.json dict (read by :func:`~..report.schema.load_report`).
 
     :returns: ``winner``, ``best_mitsuba_efficiency``, ``best_mitsuba_mse``, ``bias`` (``"ok"``,
         ``"flagged: ..."`` or ``"unknown"``), ``verdict`` (the report's own, or None), ``notes`` and
@@ -123,24 +111,25 @@ def summarise_report(report: dict) -> dict:
         ``time_ratio_vs_direct``, ``bias_ok``, ``tail_ok``. Missing values are None; a report without
         any run gives ``{"error": ...}``.
     """
-    scenes = report.get("scenes") if isinstance(report, dict) else None
-    scene = scenes[0] if isinstance(scenes, list) and scenes and isinstance(scenes[0], dict) else {}
-    runs = scene.get("runs")
-    run = runs[0] if isinstance(runs, list) and runs and isinstance(runs[0], dict) else {}
-    methods = run.get("methods")
-    if not isinstance(methods, dict) or not methods:
+    report = load_report(report)
+    scene = report.scenes[0] if report.scenes else None
+    run = scene.runs[0] if scene is not None and scene.runs else None
+    methods = {n: m for n, m in (run.methods or {}).items() if m is not None} if run is not None else {}
+    if not methods:
         return {"error": "the cell's report has no rendered method"}
 
-    spp = {n: e.get("equal_spp") if isinstance(e.get("equal_spp"), dict) else {} for n, e in methods.items()}
-    eqt = {n: e.get("equal_time") if isinstance(e.get("equal_time"), dict) else {} for n, e in methods.items()}
-    eff = {n: _number(eqt[n], "efficiency") for n in methods}
-    mse = {n: _number(_error(spp[n]), "mse") for n in methods}
+    spp = {n: m.equal_spp for n, m in methods.items()}
+    eqt = {n: m.equal_time for n, m in methods.items()}
+    eff = {n: _finite(eqt[n].efficiency) if eqt[n] is not None else None for n in methods}
+    mse = {n: _finite(spp[n].error.mse) if spp[n] is not None and spp[n].error is not None else None
+           for n in methods}
     mitsuba = mitsuba_strategies(methods)
     best_eff = max((n for n in mitsuba if eff[n] is not None), key=lambda n: eff[n], default=None)
     best_mse = min((n for n in mitsuba if mse[n] is not None), key=lambda n: mse[n], default=None)
     contenders = [n for n in methods if role_of(n) != REFERENCE]
     winner = max((n for n in contenders if eff[n] is not None), key=lambda n: eff[n], default=None)
-    direct_time = _number(spp.get("direct", {}), "time_s")
+    time = {n: _finite(spp[n].time_s) if spp[n] is not None else None for n in methods}
+    direct_time = time.get("direct")
 
     summary = {}
     for name in methods:
@@ -155,22 +144,20 @@ def summarise_report(report: dict) -> dict:
         if mse_ratio is not None:
             mse_err = 0.0 if name == best_mse else ratio_stderr(
                 mse_ratio, mse_per_pass(spp[name]), mse_per_pass(spp[best_mse]))
-        time = _number(spp[name], "time_s")
         summary[name] = {
             "equal_spp_mse": mse[name], "equal_time_efficiency": eff[name],
             "mse_ratio_vs_best_mitsuba": mse_ratio, "mse_ratio_vs_best_mitsuba_err": mse_err,
             "efficiency_ratio_vs_best_mitsuba": eff_ratio, "efficiency_ratio_vs_best_mitsuba_err": eff_err,
-            "time_ratio_vs_direct": time / direct_time if time is not None and direct_time else None,
-            "bias_ok": _all([_flag(spp[name], "bias_ok", "bias"), _flag(eqt[name], "bias_ok", "bias")]),
+            "time_ratio_vs_direct": time[name] / direct_time if time[name] is not None and direct_time else None,
+            "bias_ok": _all([_bias_ok(e) for e in (spp[name], eqt[name])]),
             "tail_ok": _all([_tail_ok(e) for e in (spp[name], eqt[name])]),
         }
     flagged = [n for n, s in summary.items() if s["bias_ok"] is False]
     bias = ("flagged: " + ", ".join(flagged) if flagged
             else "ok" if all(s["bias_ok"] for s in summary.values()) else "unknown")
-    notes = scene.get("notes") if isinstance(scene.get("notes"), list) else []
     return {"winner": winner, "best_mitsuba_efficiency": best_eff, "best_mitsuba_mse": best_mse,
-            "bias": bias, "verdict": _verdict(report, scene.get("scene"), run.get("sampler")),
-            "notes": [str(n) for n in notes], "methods": summary}
+            "bias": bias, "verdict": _verdict(report, scene.scene, run.sampler),
+            "notes": [str(n) for n in scene.notes or []], "methods": summary}
 
 
 def cell_row(cell, key: str, record: dict | None, report: dict | None, out: str) -> dict:
