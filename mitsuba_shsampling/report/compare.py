@@ -8,6 +8,12 @@ render per spp value). Everything is measured against a cached ``path``
 reference (:mod:`.metrics`: expected error, tails, bias test), judged in a
 verdict (:mod:`.verdict`), and written to ``report.json``, ``metrics.csv``,
 EXR/PNG files and ``index.html``. Results are the typed report of :mod:`.schema`.
+
+The module is cut the way a run goes: the phases of one sampler (:func:`equal_samples`,
+:func:`equal_time`, :func:`convergence`) only render and time; scoring (:func:`measure`,
+:func:`compare_with_baselines`, the maps, the per-material breakdown) only computes;
+:class:`ReportFiles` writes every file; :class:`SceneComparison` runs them in order for one
+scene and notes what failed.
 """
 
 from __future__ import annotations
@@ -34,9 +40,9 @@ from .plots import convergence_figure
 from .rendering import (SEED_CONVERGENCE, SEED_EQUAL_TIME, MethodRenderer, PassSet, Reference,
                         REFERENCE_CHUNKS, admissible_spp, interleaved_passes, load_for_settings,
                         render_reference, write_exr)
-from .schema import (CompareSettings, ConvergencePoint, EnvmapEntry, ErrorMaps, MethodResult, PassResult,
-                     ReferenceEntry, Report, RunResult, SamplerFigure, SceneResult, load_report, serialise,
-                     write_report)
+from .schema import (CompareSettings, ConvergencePoint, EnvmapEntry, ErrorMaps, MaterialEntry, MethodResult,
+                     PassResult, ReferenceEntry, Report, RunResult, SamplerFigure, SceneResult, load_report,
+                     serialise, write_report)
 
 
 def environment_info() -> dict:
@@ -69,29 +75,6 @@ def convergence_spps(sampler: str, max_spp: int) -> list[int]:
     return [v for v in values if v <= max(max_spp, values[0])]
 
 
-def measure(passes: PassSet, reference: Reference, files: dict[str, str]) -> PassResult:
-    """Every statistic of K passes against the reference."""
-    error = metrics.error_stats(passes.images, reference.image)
-    return PassResult(
-        spp=passes.spp, time_s=passes.time_s, times_s=passes.times_s,
-        efficiency=metrics.efficiency(error.mse, passes.time_s), error=error,
-        tail=metrics.tail_stats(passes.images, reference.image),
-        bias=metrics.bias_test(metrics.image_mean_luminance(passes.images), reference.chunk_means),
-        seeds=passes.seeds, files=files)
-
-
-def save_passes(folder: str, tag: str, passes: PassSet, exposure: float, root: str) -> dict[str, str]:
-    """Write the first pass (EXR, PNG) and the mean of all passes (EXR) under ``folder``."""
-    os.makedirs(folder, exist_ok=True)
-    stem = os.path.join(folder, tag)
-    write_exr(stem + "_pass0.exr", passes.images[0])
-    images.write_png(stem + "_pass0.png", images.tonemap(passes.images[0], exposure))
-    write_exr(stem + "_mean.exr", passes.images.mean(axis=0))
-    return {"first_pass": os.path.relpath(stem + "_pass0.exr", root),
-            "first_pass_png": os.path.relpath(stem + "_pass0.png", root),
-            "mean": os.path.relpath(stem + "_mean.exr", root)}
-
-
 def scene_labels(paths: list[str]) -> list[str]:
     """A name per scene for the tables and the report's folders: the file's stem, with as many
     parent folders as tell apart files of the same stem (``a/scene``, ``b/scene``); the same
@@ -114,8 +97,238 @@ def scene_labels(paths: list[str]) -> list[str]:
     return unique
 
 
+def exposure(reference: np.ndarray) -> float:
+    """Exposure that maps the 99th luminance percentile of the (finite) reference to 0.9."""
+    lum = metrics.luminance(reference)
+    lum = lum[np.isfinite(lum)]
+    p99 = float(np.quantile(lum, 0.99)) if lum.size else 0.0
+    return 0.9 / p99 if p99 > 0 else 1.0
+
+
+# Scoring: statistics of the renders, no files -----------------------------------------------
+
+def measure(passes: PassSet, reference: Reference) -> PassResult:
+    """Every statistic of K passes against the reference (their files are recorded when written)."""
+    error = metrics.error_stats(passes.images, reference.image)
+    return PassResult(
+        spp=passes.spp, time_s=passes.time_s, times_s=passes.times_s,
+        efficiency=metrics.efficiency(error.mse, passes.time_s), error=error,
+        tail=metrics.tail_stats(passes.images, reference.image),
+        bias=metrics.bias_test(metrics.image_mean_luminance(passes.images), reference.chunk_means),
+        seeds=passes.seeds)
+
+
+def baseline_name(method: Method, results: dict[str, MethodResult]) -> str:
+    """The method whose time per pass sets the equal-time budget of ``method``'s family."""
+    base = BASELINE if method.family == DIRECT else MULTI_BOUNCE_BASELINE
+    if base in results:
+        return base
+    same_family = [n for n, r in results.items() if r.family == method.family]
+    # Never a reference row: an oracle pass costs 10-200x a renderer's.
+    return ([n for n in same_family if not results[n].oracle] or same_family)[0]
+
+
+def compare_with_baselines(results: dict[str, MethodResult]) -> None:
+    """MSE, efficiency and tails relative to the family baseline (same run, same kind)."""
+    for entry in results.values():
+        base_name = BASELINE if entry.family == DIRECT else MULTI_BOUNCE_BASELINE
+        base = results.get(base_name)
+        if base is None:
+            continue
+        for b, e in ((base.equal_spp, entry.equal_spp), (base.equal_time, entry.equal_time)):
+            e.mse_ratio_vs_baseline = e.error.mse / b.error.mse if b.error.mse > 0 else None
+            e.efficiency_ratio_vs_baseline = e.efficiency / b.efficiency if b.efficiency > 0 else None
+            if entry is not base:
+                e.tail_worse_than_baseline = metrics.tail_worse(e.tail, b.tail, base_name)
+
+
+def crop(methods: list[Method], equal_spp: dict[str, PassSet]) -> list[int] | None:
+    """[x, y, size] of the zoomed crop shown for every method: the window of a sixth of the
+    image (at least 8 px) where the methods' summed per-pixel variance is largest."""
+    if not methods:
+        return None
+    variance = sum(metrics.pixel_variance(equal_spp[m.name].images) for m in methods)
+    size = max(8, min(variance.shape) // 6)
+    return [*images.noisiest_window(variance, size), min(size, *variance.shape)]
+
+
+def error_maps(methods: list[Method], equal_spp: dict[str, PassSet],
+               refs: dict[str, Reference]) -> dict[str, dict[str, np.ndarray]]:
+    """Per kind (``variance``, ``rel_error``), per method, the (H, W) per-pixel map of the
+    equal-sample passes: variance across passes, relative squared error against the reference."""
+    return {"variance": {m.name: metrics.pixel_variance(equal_spp[m.name].images) for m in methods},
+            "rel_error": {m.name: metrics.rel_squared_error_map(equal_spp[m.name].images, refs[m.family].image)
+                          for m in methods}}
+
+
+def material_breakdown(renderers: dict[str, MethodRenderer], methods: list[Method],
+                       equal_spp: dict[str, PassSet], equal_time: dict[str, PassSet],
+                       refs: dict[str, Reference]) -> dict[str, list[MaterialEntry]]:
+    """Per family, the per-material error ratios and error shares (:mod:`.materials`)."""
+    if not methods:
+        return {}
+    renderer = renderers[methods[0].name]
+    ids, labels = materials.material_map(renderer.scene, renderer.sensor)
+    out = {}
+    for family in sorted({m.family for m in methods}):
+        names = [m.name for m in methods if m.family == family and not m.oracle]
+        out[family] = materials.breakdown(
+            ids, labels, {n: equal_spp[n].images for n in names},
+            {n: equal_time[n].images for n in names if n in equal_time}, refs[family].image,
+            [n for n in names if n in PROJECT_METHODS], [n for n in names if n in MITSUBA_METHODS])
+    return out
+
+
+# The phases of one sampler: renders, timed, no files ----------------------------------------
+
+def equal_samples(renderers: dict[str, MethodRenderer], methods: list[Method], settings: CompareSettings,
+                  on_pass=None) -> tuple[dict[str, PassSet], dict[str, Exception]]:
+    """K passes of every method at the ray budget of ``settings.spp`` samples of 2 rays, timed
+    interleaved (:func:`.rendering.interleaved_passes`): the passes, and the methods that failed."""
+    return interleaved_passes({m.name: (renderers[m.name], equal_ray_spp(settings.spp, m)) for m in methods},
+                              settings.passes, settings.seed, on_pass=on_pass)
+
+
+def equal_time_budgets(methods: list[Method], equal_spp: dict[str, PassSet],
+                       results: dict[str, MethodResult]) -> dict[str, tuple[str, float, int]]:
+    """Per method: the method whose time per pass is its budget (:func:`baseline_name`), that
+    time (s), and the spp the method's own time per sample at equal samples affords in it."""
+    budgets = {}
+    for m in methods:
+        base = baseline_name(m, results)
+        budget_s = equal_spp[base].time_s
+        per_sample = equal_spp[m.name].time_s / equal_spp[m.name].spp
+        spp = max(1, round(budget_s / per_sample)) if per_sample > 0 else equal_spp[m.name].spp
+        budgets[m.name] = (base, budget_s, spp)
+    return budgets
+
+
+def equal_time(renderers: dict[str, MethodRenderer], methods: list[Method],
+               budgets: dict[str, tuple[str, float, int]], settings: CompareSettings,
+               on_pass=None) -> tuple[dict[str, PassSet], dict[str, Exception]]:
+    """K passes of every method at the spp of its budget (:func:`equal_time_budgets`), timed
+    interleaved, with seeds of their own: the passes, and the methods that failed."""
+    return interleaved_passes({m.name: (renderers[m.name], budgets[m.name][2]) for m in methods},
+                              settings.passes, settings.seed + SEED_EQUAL_TIME, on_pass=on_pass)
+
+
+def convergence(renderer: MethodRenderer, spps: list[int], seed: int, reference: Reference,
+                on_render=None) -> list[tuple[ConvergencePoint, np.ndarray]]:
+    """One render per spp of ``spps`` (each new spp warmed up untimed), scored against the
+    reference: the points, each with its image."""
+    out = []
+    for i, spp in enumerate(spps):
+        image, elapsed = renderer.timed_render(spp, seed + i)
+        out.append((ConvergencePoint(spp=spp, time_s=elapsed, mse=metrics.mse(image, reference.image),
+                                     rel_mse=metrics.rel_mse(image, reference.image)), image))
+        if on_render is not None:
+            on_render()
+    return out
+
+
+# Files: every file of the report, written in one place --------------------------------------
+
+class ReportFiles:
+    """Writes one scene's files (EXR, PNG, false-colour maps, plots) under its folder of the
+    report and records their report-relative paths (how report.json and index.html name them).
+
+    Layout: ``<scene>/reference_<family>.{exr,png}``, ``<scene>/envmap.png``,
+    ``<scene>/sampler_points_<i>.png``, ``<scene>/<sampler>/convergence.png`` and per method
+    ``<scene>/<sampler>/<method>/``: ``{equal_spp,equal_time}_{pass0.exr,pass0.png,mean.exr}``,
+    ``{variance,rel_error}_map.{png,exr}``, ``convergence_spp<n>.exr``.
+    """
+
+    def __init__(self, root: str, scene: str):
+        self.root = root
+        self.folder = os.path.join(root, scene)
+
+    def path(self, *parts: str) -> str:
+        """The absolute path of ``parts`` under the scene's folder (its folder created)."""
+        path = os.path.join(self.folder, *parts)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        return path
+
+    def rel(self, path: str) -> str:
+        """``path`` relative to the report folder."""
+        return os.path.relpath(path, self.root)
+
+    def reference(self, family: str, reference: Reference, exposure_value: float) -> tuple[str, str]:
+        """The reference image of ``family``: (EXR, PNG)."""
+        stem = self.path(f"reference_{family}")
+        write_exr(stem + ".exr", reference.image)
+        images.write_png(stem + ".png", images.tonemap(reference.image, exposure_value))
+        return self.rel(stem + ".exr"), self.rel(stem + ".png")
+
+    def envmap_thumbnail(self, texels: np.ndarray) -> str:
+        path = self.path("envmap.png")
+        images.write_png(path, images.thumbnail(texels))
+        return self.rel(path)
+
+    def sampler_figures(self, figures: list[tuple[str, bytes]]) -> list[SamplerFigure]:
+        out = []
+        for i, (caption, png) in enumerate(figures):
+            path = self.path(f"sampler_points_{i}.png")
+            with open(path, "wb") as f:
+                f.write(png)
+            out.append(SamplerFigure(caption=caption, png=self.rel(path)))
+        return out
+
+    def passes(self, sampler: str, method: str, tag: str, passes: PassSet, exposure_value: float) -> dict[str, str]:
+        """The first pass (EXR, PNG) and the mean of all passes (EXR), as :attr:`.schema.PassResult.files`."""
+        stem = self.path(sampler, method, tag)
+        write_exr(stem + "_pass0.exr", passes.images[0])
+        images.write_png(stem + "_pass0.png", images.tonemap(passes.images[0], exposure_value))
+        write_exr(stem + "_mean.exr", passes.images.mean(axis=0))
+        return {"first_pass": self.rel(stem + "_pass0.exr"), "first_pass_png": self.rel(stem + "_pass0.png"),
+                "mean": self.rel(stem + "_mean.exr")}
+
+    def error_maps(self, sampler: str, maps: dict[str, dict[str, np.ndarray]]) -> ErrorMaps:
+        """False-colour PNGs (one log scale per kind, shared by the methods) and EXRs of ``maps``
+        (:func:`error_maps`)."""
+        out = ErrorMaps(files={}, scale={})
+        for kind, per_method in maps.items():
+            vmin, vmax = images.log_range(list(per_method.values()))
+            for name, values in per_method.items():
+                path = self.path(sampler, name, f"{kind}_map.png")
+                images.write_png(path, images.false_colour(values, vmin, vmax))
+                write_exr(self.path(sampler, name, f"{kind}_map.exr"), values[..., None])
+                out.files.setdefault(name, {})[kind] = self.rel(path)
+            out.scale[kind] = [vmin, vmax]
+        return out
+
+    def convergence(self, sampler: str, method: str, point: ConvergencePoint, image: np.ndarray) -> str:
+        path = self.path(sampler, method, f"convergence_spp{point.spp}.exr")
+        write_exr(path, image)
+        return self.rel(path)
+
+    def convergence_plot(self, sampler: str, png: bytes) -> str:
+        path = self.path(sampler, "convergence.png")
+        with open(path, "wb") as f:
+            f.write(png)
+        return self.rel(path)
+
+    def run(self, run: RunResult, equal_spp: dict[str, PassSet], equal_time: dict[str, PassSet],
+            sweep: dict[str, list[tuple[ConvergencePoint, np.ndarray]]] | None,
+            maps: dict[str, dict[str, np.ndarray]], exposure_value: float, title: str) -> None:
+        """Every file of one sampler's run, recorded in ``run`` (its passes' ``files``, its
+        convergence points' ``file``, ``maps``, ``convergence_plot``); ``sweep`` is None when the
+        run had no convergence sweep."""
+        for name, result in run.methods.items():
+            result.equal_spp.files = self.passes(run.sampler, name, "equal_spp", equal_spp[name], exposure_value)
+            result.equal_time.files = self.passes(run.sampler, name, "equal_time", equal_time[name], exposure_value)
+            for point, image in (sweep or {}).get(name, []):
+                point.file = self.convergence(run.sampler, name, point, image)
+        run.maps = self.error_maps(run.sampler, maps)
+        if sweep is not None:
+            curves = {r.label: r.convergence for r in run.methods.values()}
+            run.convergence_plot = self.convergence_plot(run.sampler, convergence_figure(curves, title))
+
+
+# One scene ----------------------------------------------------------------------------------
+
 class SceneComparison:
-    """Runs one scene: references per family, then every sampler and method.
+    """Runs one scene: references per family, then per sampler the phases (equal samples, equal
+    time, convergence), scores them, and has :class:`ReportFiles` write the files.
 
     :param name: the scene's name in the report (:func:`scene_labels`; default: the file's stem),
         also its folder under the report folder.
@@ -126,8 +339,7 @@ class SceneComparison:
         self.name = name or os.path.splitext(os.path.basename(scene_path))[0]
         self.settings = settings
         self.bar = bar
-        self.root = os.path.abspath(settings.out)
-        self.folder = os.path.join(self.root, self.name)
+        self.files = ReportFiles(os.path.abspath(settings.out), self.name)
         self.notes: list[str] = []
         self.render_settings = {"res": settings.res, "envmap": settings.envmap,
                                 "max_depth": settings.max_depth}
@@ -141,8 +353,7 @@ class SceneComparison:
             self.notes.append("this scene has no environment map: product sampling has nothing to "
                               "sample here, so the SH methods can only match their fallback strategies")
         else:
-            texels = np.array(mi.traverse(self.envmap)["data"])[:, 1:-1]
-            bad = int(np.count_nonzero(~np.isfinite(texels)))
+            bad = int(np.count_nonzero(~np.isfinite(self.envmap_texels())))
             if bad:
                 self.notes.append(
                     f"the environment map has {bad} non-finite texel values (NaN or infinite). Pixels "
@@ -152,9 +363,9 @@ class SceneComparison:
                     f"on this scene its comparison with them is not like for like")
         self.references: dict[str, Reference] = {}
 
-    def rel(self, path: str) -> str:
-        """``path`` relative to the report folder (how report.json and index.html name files)."""
-        return os.path.relpath(path, self.root)
+    def envmap_texels(self) -> np.ndarray:
+        """The environment map's texels (H, W, C), without the wrap-around column of its bitmap."""
+        return np.array(mi.traverse(self.envmap)["data"])[:, 1:-1]
 
     def methods(self) -> list[Method]:
         names = list(self.settings.methods) if self.settings.methods else None
@@ -177,29 +388,28 @@ class SceneComparison:
             self.references[family] = ref
         return self.references[family]
 
-    def run(self) -> dict:
+    def run(self) -> SceneResult:
         methods = self.methods()
         families = sorted({m.family for m in methods})
         refs = {f: self.reference(f) for f in families}
-        os.makedirs(self.folder, exist_ok=True)
-        exposure = self.exposure(next(iter(refs.values())).image) if refs else 1.0
+        exposure_value = exposure(next(iter(refs.values())).image) if refs else 1.0
         ref_entries = {}
         for family, ref in refs.items():
-            stem = os.path.join(self.folder, f"reference_{family}")
-            write_exr(stem + ".exr", ref.image)
-            images.write_png(stem + ".png", images.tonemap(ref.image, exposure))
+            exr, png = self.files.reference(family, ref, exposure_value)
             if ref.non_finite:
                 self.notes.append(f"the {family} reference has {ref.non_finite} non-finite pixel values: "
                                   f"those pixels are left out of every method's statistics")
             ref_entries[family] = ReferenceEntry(
                 spp=ref.spp, chunks=int(ref.chunks.shape[0]), cache_file=ref.path, cached=ref.cached,
-                render_time_s=ref.time_s, file=self.rel(stem + ".exr"), png=self.rel(stem + ".png"),
+                render_time_s=ref.time_s, file=exr, png=png,
                 mean_variance=float(np.nanmean(np.where(np.isfinite(ref.variance), ref.variance, np.nan))),
                 integrator="path, max_depth " + ("2" if family == DIRECT else str(self.settings.max_depth)))
-        runs = [self.run_sampler(sampler, methods, refs, exposure) for sampler in self.settings.samplers]
-        figures = self.sampler_figures() if any(m.product_sampling for m in methods) else []
+        runs = [self.run_sampler(sampler, methods, refs, exposure_value) for sampler in self.settings.samplers]
+        # Warped sample points over their targets (SH lobe; lobe x this scene's map).
+        figures = (self.files.sampler_figures(sampler_demo_figures(self.envmap))
+                   if self.has_envmap and any(m.product_sampling for m in methods) else [])
         return SceneResult(scene=self.name, path=self.path, has_envmap=self.has_envmap,
-                           envmap=self.envmap_entry(), notes=self.notes, exposure=exposure,
+                           envmap=self.envmap_entry(), notes=self.notes, exposure=exposure_value,
                            references=ref_entries, runs=runs, sampler_figures=figures)
 
     def envmap_entry(self) -> EnvmapEntry | None:
@@ -209,30 +419,7 @@ class SceneComparison:
         named = re.search(r'filename = "([^"]*)"', str(self.envmap))
         name = os.path.basename(self.settings.envmap) if self.settings.envmap else (
             named.group(1) if named else "(built from a bitmap)")
-        path = os.path.join(self.folder, "envmap.png")
-        os.makedirs(self.folder, exist_ok=True)
-        images.write_png(path, images.thumbnail(np.array(mi.traverse(self.envmap)["data"])[:, 1:-1]))
-        return EnvmapEntry(name=name, png=self.rel(path))
-
-    def sampler_figures(self) -> list[SamplerFigure]:
-        """Warped sample points over their targets (SH lobe; lobe x this scene's map)."""
-        if not self.has_envmap:
-            return []
-        out = []
-        for i, (caption, png) in enumerate(sampler_demo_figures(self.envmap)):
-            path = os.path.join(self.folder, f"sampler_points_{i}.png")
-            with open(path, "wb") as f:
-                f.write(png)
-            out.append(SamplerFigure(caption=caption, png=self.rel(path)))
-        return out
-
-    @staticmethod
-    def exposure(reference: np.ndarray) -> float:
-        """Exposure that maps the 99th luminance percentile of the (finite) reference to 0.9."""
-        lum = metrics.luminance(reference)
-        lum = lum[np.isfinite(lum)]
-        p99 = float(np.quantile(lum, 0.99)) if lum.size else 0.0
-        return 0.9 / p99 if p99 > 0 else 1.0
+        return EnvmapEntry(name=name, png=self.files.envmap_thumbnail(self.envmap_texels()))
 
     def drop(self, method: Method, sampler: str, err: Exception) -> None:
         """Note that ``method`` failed and is left out of this sampler's comparison."""
@@ -240,171 +427,78 @@ class SceneComparison:
         self.notes.append(f"'{method.name}' failed with the {sampler} sampler and was left out: "
                           f"{type(err).__name__}: {first_line}")
 
-    def run_sampler(self, sampler: str, methods: list[Method], refs: dict[str, Reference],
-                    exposure: float) -> RunResult:
-        s = self.settings
+    def compile(self, sampler: str, methods: list[Method]) -> tuple[dict[str, MethodRenderer], list[Method]]:
+        """A warmed-up renderer per method, and the methods that loaded and rendered. A method
+        that fails is dropped with a note, so one broken plugin does not cost the whole comparison."""
         settings = dict(self.render_settings, sampler=sampler)
-        folder = os.path.join(self.folder, sampler)
-        results: dict[str, MethodResult] = {}
         renderers: dict[str, MethodRenderer] = {}
-
-        # Equal ray budget: K passes each, timed interleaved across the methods. A method
-        # that fails to load or render is dropped with a note, so one broken plugin does
-        # not cost the whole comparison.
-        for m in list(methods):
+        loaded = []
+        for m in methods:
             self.bar.set_description(f"{self.name}/{sampler}/{m.name} compile")
             try:
-                r = renderers[m.name] = MethodRenderer(self.path, m, settings)
-                r.warm_up(admissible_spp(sampler, equal_ray_spp(s.spp, m)))
+                renderers[m.name] = MethodRenderer(self.path, m, settings)
+                renderers[m.name].warm_up(admissible_spp(sampler, equal_ray_spp(self.settings.spp, m)))
+                loaded.append(m)
             except Exception as err:
                 self.drop(m, sampler, err)
-                methods = [x for x in methods if x is not m]
             self.bar.update(1)
+        return renderers, loaded
+
+    def run_sampler(self, sampler: str, methods: list[Method], refs: dict[str, Reference],
+                    exposure_value: float) -> RunResult:
+        s = self.settings
+        tick = lambda: self.bar.update(1)  # noqa: E731
+        renderers, methods = self.compile(sampler, methods)
+
+        # Equal ray budget: K passes each, timed interleaved across the methods.
         self.bar.set_description(f"{self.name}/{sampler} equal spp (methods interleaved)")
-        equal_spp, failed = interleaved_passes(
-            {m.name: (renderers[m.name], equal_ray_spp(s.spp, m)) for m in methods},
-            s.passes, s.seed, on_pass=lambda: self.bar.update(1))
+        equal_spp, failed = equal_samples(renderers, methods, s, on_pass=tick)
         for m in [m for m in methods if m.name in failed]:
             self.drop(m, sampler, failed[m.name])
         methods = [m for m in methods if m.name in equal_spp]
-        for m in methods:
-            passes = equal_spp[m.name]
-            files = save_passes(os.path.join(folder, m.name), "equal_spp", passes, exposure, self.root)
-            results[m.name] = MethodResult(
-                label=m.label, family=m.family, rays_per_sample=m.rays_per_sample,
-                integrator=m.integrator, scene_params=m.scene_params,
-                compile_time_s=renderers[m.name].compile_time_s,
-                equal_spp=measure(passes, refs[m.family], files), oracle=m.oracle)
+        results = {m.name: MethodResult(
+            label=m.label, family=m.family, rays_per_sample=m.rays_per_sample, integrator=m.integrator,
+            scene_params=m.scene_params, compile_time_s=renderers[m.name].compile_time_s,
+            equal_spp=measure(equal_spp[m.name], refs[m.family]), oracle=m.oracle) for m in methods}
 
         # Equal time: each method gets the spp that costs the baseline's time per pass.
-        budgets, targets = {}, {}
-        for m in methods:
-            base = self.baseline_name(m, results)
-            budgets[m.name] = (base, equal_spp[base].time_s)
-            per_sample = equal_spp[m.name].time_s / equal_spp[m.name].spp
-            targets[m.name] = (max(1, round(budgets[m.name][1] / per_sample)) if per_sample > 0
-                               else equal_spp[m.name].spp)
+        budgets = equal_time_budgets(methods, equal_spp, results)
         self.bar.set_description(f"{self.name}/{sampler} equal time (methods interleaved)")
-        equal_time, failed = interleaved_passes(
-            {m.name: (renderers[m.name], targets[m.name]) for m in methods},
-            s.passes, s.seed + SEED_EQUAL_TIME, on_pass=lambda: self.bar.update(1))
+        timed, failed = equal_time(renderers, methods, budgets, s, on_pass=tick)
         for m in [m for m in methods if m.name in failed]:
             self.drop(m, sampler, failed[m.name])
             del results[m.name]
-        methods = [m for m in methods if m.name in equal_time]
+        methods = [m for m in methods if m.name in timed]
         for m in methods:
-            passes = equal_time[m.name]
-            files = save_passes(os.path.join(folder, m.name), "equal_time", passes, exposure, self.root)
             result = results[m.name]
-            result.equal_time = measure(passes, refs[m.family], files)
-            base, budget = budgets[m.name]
-            result.equal_time.time_budget_s = budget
+            base, budget_s, _ = budgets[m.name]
+            result.equal_time = measure(timed[m.name], refs[m.family])
+            result.equal_time.time_budget_s = budget_s
             result.equal_spp.budget_method = result.equal_time.budget_method = base
 
         # Convergence sweep: one render per spp value, with the first sampler only (the
         # others recompile their kernels for every new sample count).
         max_spp = 4 * s.spp if s.convergence_max_spp is None else s.convergence_max_spp
-        if sampler != s.samplers[0]:
-            max_spp = 0
-        for m in methods:
-            if max_spp > 0:
+        sweep = None
+        if max_spp > 0 and sampler == s.samplers[0]:
+            sweep = {}
+            for m in methods:
                 self.bar.set_description(f"{self.name}/{sampler}/{m.name} convergence")
-                for i, spp in enumerate(convergence_spps(sampler, max_spp)):
-                    image, elapsed = renderers[m.name].timed_render(spp, s.seed + SEED_CONVERGENCE + i)
-                    ref = refs[m.family].image
-                    stem = os.path.join(folder, m.name, f"convergence_spp{spp}")
-                    write_exr(stem + ".exr", image)
-                    results[m.name].convergence.append(ConvergencePoint(
-                        spp=spp, time_s=elapsed, mse=metrics.mse(image, ref), rel_mse=metrics.rel_mse(image, ref),
-                        file=self.rel(stem + ".exr")))
-                    self.bar.update(1)
+                sweep[m.name] = convergence(renderers[m.name], convergence_spps(sampler, max_spp),
+                                            s.seed + SEED_CONVERGENCE, refs[m.family], on_render=tick)
+                results[m.name].convergence = [point for point, _ in sweep[m.name]]
 
-        self.compare_with_baselines(results)
-        maps = self.write_maps(folder, methods, equal_spp, refs)
+        compare_with_baselines(results)
         # What actually rendered, read back from the sensor the passes used.
         sensor = next(iter(renderers.values())).sensor if renderers else None
-        breakdown = self.material_breakdown(renderers, methods, equal_spp, equal_time, refs)
-        run = RunResult(sampler=sampler, methods=results, maps=maps, crop=self.crop(methods, equal_spp),
-                        convergence_plot=None, materials=breakdown,
+        run = RunResult(sampler=sampler, methods=results, maps=ErrorMaps(files={}, scale={}),
+                        crop=crop(methods, equal_spp), convergence_plot=None,
+                        materials=material_breakdown(renderers, methods, equal_spp, timed, refs),
                         sampler_plugin=sensor.sampler().class_name() if sensor else None,
                         film_size=[int(v) for v in sensor.film().size()] if sensor else None)
-        if max_spp > 0:
-            plot = convergence_figure({r.label: r.convergence for r in results.values()},
-                                      f"{self.name}, {sampler} sampler")
-            plot_path = os.path.join(folder, "convergence.png")
-            with open(plot_path, "wb") as f:
-                f.write(plot)
-            run.convergence_plot = self.rel(plot_path)
+        self.files.run(run, equal_spp, timed, sweep, error_maps(methods, equal_spp, refs), exposure_value,
+                       f"{self.name}, {sampler} sampler")
         return run
-
-    @staticmethod
-    def material_breakdown(renderers: dict[str, MethodRenderer], methods: list[Method],
-                           equal_spp: dict[str, PassSet], equal_time: dict[str, PassSet],
-                           refs: dict[str, Reference]) -> dict[str, list[materials.MaterialEntry]]:
-        """Per family, the per-material variance ratios and error shares (:mod:`.materials`)."""
-        if not methods:
-            return {}
-        renderer = renderers[methods[0].name]
-        ids, labels = materials.material_map(renderer.scene, renderer.sensor)
-        out = {}
-        for family in sorted({m.family for m in methods}):
-            names = [m.name for m in methods if m.family == family and not m.oracle]
-            out[family] = materials.breakdown(
-                ids, labels, {n: equal_spp[n].images for n in names},
-                {n: equal_time[n].images for n in names if n in equal_time}, refs[family].image,
-                [n for n in names if n in PROJECT_METHODS], [n for n in names if n in MITSUBA_METHODS])
-        return out
-
-    @staticmethod
-    def baseline_name(method: Method, results: dict[str, MethodResult]) -> str:
-        """The method whose time per pass sets the equal-time budget of ``method``'s family."""
-        base = BASELINE if method.family == DIRECT else MULTI_BOUNCE_BASELINE
-        if base in results:
-            return base
-        same_family = [n for n, r in results.items() if r.family == method.family]
-        # Never a reference row: an oracle pass costs 10-200x a renderer's.
-        return ([n for n in same_family if not results[n].oracle] or same_family)[0]
-
-    @staticmethod
-    def compare_with_baselines(results: dict[str, MethodResult]) -> None:
-        """MSE, efficiency and tails relative to the family baseline (same run, same kind)."""
-        for entry in results.values():
-            base_name = BASELINE if entry.family == DIRECT else MULTI_BOUNCE_BASELINE
-            base = results.get(base_name)
-            if base is None:
-                continue
-            for b, e in ((base.equal_spp, entry.equal_spp), (base.equal_time, entry.equal_time)):
-                e.mse_ratio_vs_baseline = e.error.mse / b.error.mse if b.error.mse > 0 else None
-                e.efficiency_ratio_vs_baseline = e.efficiency / b.efficiency if b.efficiency > 0 else None
-                if entry is not base:
-                    e.tail_worse_than_baseline = metrics.tail_worse(e.tail, b.tail, base_name)
-
-    @staticmethod
-    def crop(methods: list[Method], equal_spp: dict[str, PassSet]) -> list[int] | None:
-        """[x, y, size] of the zoomed crop shown for every method: the window of a sixth of the
-        image (at least 8 px) where the methods' summed per-pixel variance is largest."""
-        if not methods:
-            return None
-        variance = sum(metrics.pixel_variance(equal_spp[m.name].images) for m in methods)
-        size = max(8, min(variance.shape) // 6)
-        return [*images.noisiest_window(variance, size), min(size, *variance.shape)]
-
-    def write_maps(self, folder: str, methods: list[Method], equal_spp: dict[str, PassSet],
-                   refs: dict[str, Reference]) -> ErrorMaps:
-        """False-colour per-pixel variance and relative-error maps (shared log scales)."""
-        variance = {m.name: metrics.pixel_variance(equal_spp[m.name].images) for m in methods}
-        error = {m.name: metrics.rel_squared_error_map(equal_spp[m.name].images, refs[m.family].image)
-                 for m in methods}
-        out = ErrorMaps(files={}, scale={})
-        for kind, maps in (("variance", variance), ("rel_error", error)):
-            vmin, vmax = images.log_range(list(maps.values()))
-            for name, values in maps.items():
-                path = os.path.join(folder, name, f"{kind}_map.png")
-                images.write_png(path, images.false_colour(values, vmin, vmax))
-                write_exr(os.path.join(folder, name, f"{kind}_map.exr"), values[..., None])
-                out.files.setdefault(name, {})[kind] = self.rel(path)
-            out.scale[kind] = [vmin, vmax]
-        return out
 
 
 def count_renders(settings: CompareSettings, n_methods: int) -> int:
