@@ -13,7 +13,7 @@ import sys
 from typing import TYPE_CHECKING
 
 from . import render
-from .command_line import DEFAULT_VARIANT, SAMPLERS, UsageError, set_variant
+from .command_line import DEFAULT_VARIANT, SAMPLERS, UsageError, max_depth_problem, set_variant
 from .sweep import command as sweep
 from .report import DEFAULT_CACHE_DIR
 
@@ -91,9 +91,8 @@ def _compare(args) -> int:
         raise UsageError(f"environment map not found: {args.envmap}")
     if args.passes < 2:
         raise UsageError("--passes must be at least 2 (variance and bias need several passes)")
-    if args.max_depth < 2 and args.max_depth != -1:
-        raise UsageError(f"--max-depth must be -1 (infinite, as Mitsuba's) or at least 2 (direct lighting), "
-                         f"got {args.max_depth}: below 2 no light is reflected to compare")
+    if max_depth_problem(args.max_depth):
+        raise UsageError(f"--max-depth {max_depth_problem(args.max_depth)}")
     if args.methods is not None and not _split(args.methods):
         raise UsageError("--methods names no method; leave it out to run every available method")
     samplers = _split(args.sampler) or []

@@ -1,5 +1,5 @@
-"""What the commands share: the default variant, the sampler names, the bad-input error and
-the checked variant switch.
+"""What the commands share: the default variant, the sampler names, the bad-input error, the
+checked variant switch and the check of a comparison's ``max_depth``.
 
 It sits below :mod:`.cli` and :mod:`.sweep`, which both read it, so the command line and the
 sweep grid agree on every default without importing each other.
@@ -12,11 +12,23 @@ from ._backend import DEFAULT_VARIANT, unsupported_variant_reason
 #: Mitsuba samplers a comparison may use (``--sampler``, a grid's ``samplers``).
 SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler")
 
-__all__ = ["DEFAULT_VARIANT", "SAMPLERS", "UsageError", "set_variant"]
+__all__ = ["DEFAULT_VARIANT", "SAMPLERS", "UsageError", "max_depth_problem", "set_variant"]
 
 
 class UsageError(Exception):
     """Bad input from the command line: reported in one line, exit code 2."""
+
+
+def max_depth_problem(max_depth: int) -> str | None:
+    """Why ``max_depth`` cannot be a comparison's depth (``compare --max-depth``, a sweep grid's
+    ``max_depth``), or None if it can: -1 (infinite, as Mitsuba's) or at least 2 (direct lighting).
+    Below 2 no light is reflected, so there is nothing to compare."""
+    if isinstance(max_depth, bool) or not isinstance(max_depth, int):  # a grid file's value
+        return f"must be an integer, got {max_depth!r}"
+    if max_depth < 2 and max_depth != -1:
+        return (f"must be -1 (infinite, as Mitsuba's) or at least 2 (direct lighting), got {max_depth}: "
+                f"below 2 no light is reflected to compare")
+    return None
 
 
 def set_variant(variant: str) -> None:

@@ -124,6 +124,21 @@ def test_bad_grids_are_refused_with_the_reason_and_exit_code_2(tmp_path, capsys,
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("depth, accepted", [(-2, False), (-1, True), (0, False), (1, False), (2, True), (5, True)])
+def test_a_grid_takes_exactly_the_max_depths_compare_takes(tmp_path, capsys, depth, accepted):
+    """-1 (infinite, as Mitsuba's) or at least 2: one check (command_line.max_depth_problem) for both."""
+    path = tmp_path / "g.toml"
+    path.write_text(f'scenes = ["sphere_diffuse"]\nmax_depth = {depth}\n')
+    if accepted:
+        assert dict(load_grid(str(path)).settings)["max_depth"] == depth
+    else:
+        with pytest.raises(GridError, match="'max_depth' must be -1 \\(infinite"):
+            load_grid(str(path))
+    # compare checks --methods after --max-depth: an empty one is refused only once the depth passed.
+    assert cli.main(["compare", "--max-depth", str(depth), "--methods", "", "--no-progress"]) == 2
+    assert ("--max-depth must be -1 (infinite" in capsys.readouterr().err) is not accepted
+
+
 def test_readme_grid_is_every_evaluation_sphere_under_sunsky_and_the_shipped_maps():
     grid = load_grid(os.path.join(REPO, "sweeps", "readme_table.toml"))
     assert [s.name for s in grid.scenes] == [

@@ -37,13 +37,25 @@ except ModuleNotFoundError:  # Python 3.10
 
 from .. import scenes as builtin
 from .._backend import unsupported_variant_reason
-from ..command_line import DEFAULT_VARIANT, SAMPLERS
+from ..command_line import DEFAULT_VARIANT, SAMPLERS, max_depth_problem
 
 #: Keyword of ``maps``: keep the scene's own environment.
 SCENE_MAP = "scene"
-#: Integer compare settings a grid may set, with their lower bounds.
-INT_SETTINGS = {"res": 1, "spp": 1, "passes": 2, "ref_spp": 1, "max_depth": 1, "seed": 0,
-                "convergence_max_spp": 0}
+
+
+def _at_least(minimum: int):
+    """The check of an integer setting bounded below: what is wrong with a value, or None."""
+    def problem(value) -> str | None:
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            return f"must be an integer >= {minimum}, got {value!r}"
+        return None
+    return problem
+
+
+#: Integer compare settings a grid may set, each with its check; ``max_depth`` is checked as
+#: ``compare --max-depth`` is (-1 or at least 2).
+INT_SETTINGS = {"res": _at_least(1), "spp": _at_least(1), "passes": _at_least(2), "ref_spp": _at_least(1),
+                "max_depth": max_depth_problem, "seed": _at_least(0), "convergence_max_spp": _at_least(0)}
 LIST_KEYS = ("scenes", "maps", "samplers", "methods")
 
 
@@ -205,12 +217,12 @@ def load_grid(path: str) -> Grid:
             raise GridError(f"unknown method(s) {', '.join(bad)} (known: {', '.join(known_methods)})")
 
     settings = []
-    for key, minimum in INT_SETTINGS.items():
+    for key, problem in INT_SETTINGS.items():
         if key in data:
-            value = data[key]
-            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-                raise GridError(f"'{key}' must be an integer >= {minimum}, got {value!r}")
-            settings.append((key, value))
+            why = problem(data[key])
+            if why:
+                raise GridError(f"'{key}' {why}")
+            settings.append((key, data[key]))
     variant = data.get("variant", DEFAULT_VARIANT)
     if not isinstance(variant, str):
         raise GridError(f"'variant' must be a string naming a JIT variant (e.g. {DEFAULT_VARIANT}), got {variant!r}")
