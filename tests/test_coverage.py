@@ -59,6 +59,8 @@ BSDFS = {
     "blendbsdf": {"type": "blendbsdf", "weight": 0.3, "bsdf_0": {"type": "diffuse"},
                   "bsdf_1": {"type": "roughconductor", "alpha": 0.08}},
     "twosided": {"type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 0.12}},
+    "anisotropic": {"type": "roughconductor", "distribution": "ggx", "alpha_u": 0.05, "alpha_v": 0.3},
+    "roughdielectric": {"type": "roughdielectric", "distribution": "ggx", "alpha": 0.2},
     "bumpmap": {"type": "bumpmap", "scale": 0.5,
                 "arbitrary": {"type": "bitmap", "bitmap": HEIGHT, "raw": True},
                 "bsdf": {"type": "roughconductor", "alpha": 0.1}},
@@ -84,8 +86,8 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
                     product_only_lanes: bool = False) -> tuple[float, float]:
     """Share of the integral of BSDF x radiance (luminance, no visibility) over
     random shading points of a sphere that falls where the environment strategy
-    of the lane (product pdf, or Mitsuba's emitter pdf where product sampling
-    does not run) is 0. Returns (share, fraction of lanes with a product lobe).
+    of the lane (the product's pdf, or the environment alone's where the BSDF has
+    no product lobe) is 0. Returns (share, fraction of lanes with a product lobe).
     With ``product_only_lanes``, the scene's pyramid is MIS-compensated and only
     the lanes that give every sample to the product (no BSDF sample) count:
     their strategy, the uncompensated product, must cover everything alone.
@@ -125,16 +127,10 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
     sampler = rng.random((5, points)).astype(np.float32)
 
     def covering_pdf(d):
-        ds = mi.DirectionSample3f(scene, dr.zeros(mi.SurfaceInteraction3f), si)
-        ds.d, ds.emitter = d, mi.EmitterPtr(emitter)
-        mitsuba_pdf = emitter.pdf_direction(si, ds, hit)
-        mitsuba_pdf = mitsuba_pdf if env.needs_emitter_sampling else mi.Float(0.0)
-        if not env.active:
-            return mitsuba_pdf
+        assert env.active and not env.needs_emitter_sampling  # the environment is this package's alone
         if product_only_lanes:
             return dr.select(use_product, env.warp_plain.pdf(lobe.coeffs, d, lobe.proxy), 0.0)
-        product_pdf = env.pdf(lobe, d, use_product)
-        return dr.select(use_product, product_pdf, mitsuba_pdf)
+        return env.pdf(lobe, use_product, d, smooth)
 
     def integrand_and_pdfs(d):
         wo = si.to_local(d)
@@ -162,12 +158,16 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
     return hole / total, float(np.mean(lanes[hit.numpy()]))
 
 
+#: BSDFs without a product lobe: their lanes sample the environment alone.
+NO_PRODUCT_LOBE = ("bumpmap", "normalmap", "anisotropic", "roughdielectric")
+
+
 @pytest.mark.parametrize("name", list(BSDFS))
 def test_no_lit_direction_is_left_to_bsdf_sampling_alone(name):
     share, product_lanes = uncovered_share(BSDFS[name])
     assert share < 1e-6, f"{name}: {share:.2e} of BSDF x radiance falls where the environment strategy has pdf 0"
-    if name in ("bumpmap", "normalmap"):
-        assert product_lanes == 0.0  # covered by Mitsuba's emitter sampling instead
+    if name in NO_PRODUCT_LOBE:
+        assert product_lanes == 0.0  # covered by the environment alone instead
     else:
         assert product_lanes > 0.5
 
@@ -205,25 +205,30 @@ def test_no_lane_goes_product_only_unless_the_uncompensated_product_was_built():
     assert env.product_carries_all(si, si.bsdf(), use_product) is False
 
 
-def test_frame_perturbing_wrappers_fall_back_to_mitsubas_environment_sampling_with_a_warning():
+def test_frame_perturbing_wrappers_fall_back_to_the_environment_alone_with_a_warning():
     scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(),
                           "ball": {"type": "sphere", "bsdf": BSDFS["bumpmap"]},
                           "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"}}})
     with pytest.warns(UserWarning, match="perturbs the shading frame"):
         env = ProductEnvironment(scene, ProductOptions(max_bands=8, sh_depth=3))
-    assert env.active and env.needs_emitter_sampling
+    assert env.active and env.env_warp is not None
+    # The environment is sampled by this package in every lane; Mitsuba's emitter
+    # sampling has nothing left to do in a scene without other emitters.
+    assert not env.needs_emitter_sampling
 
 
 # ------------------------------------------------------------ end to end
 
-WRAPPED = {"bumpmap": BSDFS["bumpmap"], "normalmap": BSDFS["normalmap"], "ggx": MATERIALS["ggx"]}
+WRAPPED = {"bumpmap": BSDFS["bumpmap"], "normalmap": BSDFS["normalmap"], "ggx": MATERIALS["ggx"],
+           "anisotropic": BSDFS["anisotropic"], "roughdielectric": BSDFS["roughdielectric"]}
 
 
 @pytest.mark.parametrize("integrator", [
     {"type": "sh_direct", "max_bands": 5},
     {"type": "sh_path", "max_bands": 5, "max_depth": 3},
 ])
-def test_bumpmap_and_normalmap_wrapped_bsdfs_are_unbiased(integrator):
+def test_bsdfs_without_a_product_lobe_are_unbiased_with_the_environment_alone(integrator):
+    """bumpmap, normalmap, anisotropic and transmissive lobes beside a product-sampled GGX."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         scene = make_scene(materials=WRAPPED)

@@ -26,7 +26,7 @@ from mitsuba_shsampling.envmap import EnvPyramid  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import constant_latlong, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
 from mitsuba_shsampling.fidelity import product_fidelity  # noqa: E402
-from mitsuba_shsampling.warp.product import ProductWarp, default_sh_depth  # noqa: E402
+from mitsuba_shsampling.warp.product import EnvironmentWarp, ProductWarp, default_sh_depth  # noqa: E402
 from mitsuba_shsampling.warp.proxy_lobe import ProxyLobe  # noqa: E402
 
 from conftest import ENVMAPS_DIR
@@ -153,6 +153,31 @@ def test_chi2_samples_follow_own_pdf_on_sun_map_with_rotated_to_world(sun_pyrami
     attenuation, axis = CHI2_LOBES[lobe]
     test = run_chi2(ProductWarp(sun_pyramid), zonal_lobe(attenuation, axis))
     assert test.run(0.01), test.messages
+
+
+# ------------------------------------------------ the environment alone
+
+@pytest.mark.parametrize("compensated", [False, True])
+def test_chi2_environment_alone_samples_follow_own_pdf(compensated):
+    """The strategy of lanes without a product lobe, plain and MIS-compensated (chi2 also
+    checks that the pdf integrates to one)."""
+    pyramid = EnvPyramid(mi.load_dict({"type": "envmap", "filename": REAL_MAP}), max_depth=CHI2_DEPTH,
+                         mis_compensation=compensated)
+    warp = EnvironmentWarp(pyramid)
+    test = chi2.ChiSquareTest(
+        domain=chi2.SphericalDomain(),
+        sample_func=lambda u: pyramid.grid_from_world(warp.sample(u)[0]),
+        pdf_func=lambda d: warp.pdf(pyramid.world_from_grid(d)),
+        sample_dim=2, sample_count=1_000_000, res=1 << warp.depth, ires=2, seed=5)
+    assert test.run(0.01), test.messages
+
+
+def test_environment_alone_returns_the_pdf_it_evaluates_even_on_a_tilted_sun_map(sun_pyramid):
+    warp = EnvironmentWarp(sun_pyramid)
+    rng = np.random.default_rng(4)
+    d, pdf = warp.sample(mi.Point2f(rng.random(1 << 16), rng.random(1 << 16)))
+    assert np.all(pdf.numpy() > 0)
+    assert np.allclose(pdf.numpy(), warp.pdf(d).numpy(), rtol=1e-4)
 
 
 # ------------------------------------------------------- exactness of pdf

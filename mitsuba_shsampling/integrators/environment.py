@@ -5,6 +5,13 @@ pass is being traced): the environment pyramid, the BSDF lobe table and the
 product warp. A scene without an environment map, or whose BSDFs are all
 delta/unsupported, builds nothing and the integrators behave like their
 Mitsuba counterparts.
+
+Where it is built, the environment is sampled by this package at every shading
+point with a smooth BSDF: the product where the BSDF has a product lobe, the
+environment alone (:class:`~mitsuba_shsampling.warp.product.EnvironmentWarp`, on
+the same pyramid, so MIS-compensated like the product) where it has none
+(anisotropic, transmissive and frame-perturbing BSDFs). Mitsuba's emitter
+sampling is left with the other emitters.
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
 from ..lobes.scene_lobes import registry_id
 from ..traversal import readable_parameters
-from ..warp.product import ProductWarp
+from ..warp.product import EnvironmentWarp, ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from .estimators import environment_ray_target, is_emitter, mis_weight, mitsuba_emitter_sample
 from .options import ProductOptions
@@ -34,14 +41,15 @@ class ProductEnvironment:
 
     Attributes: ``emitter`` (the envmap or None), ``active`` (bool: product
     sampling runs for this scene), ``reason`` (why not, when inactive),
-    ``pyramid``, ``lobes``, ``warp``, ``needs_emitter_sampling`` (bool:
-    Mitsuba's emitter sampling has work to do besides the environment).
+    ``pyramid``, ``lobes``, ``warp``, ``env_warp`` (the environment alone, for
+    smooth lanes without a product lobe), ``needs_emitter_sampling`` (bool:
+    Mitsuba's emitter sampling has work to do: emitters besides the environment).
     """
 
     def __init__(self, scene: mi.Scene, options: ProductOptions, plain_product: bool = False):
         self.scene = scene
         self.emitter = scene.environment()
-        self.pyramid = self.lobes = self.warp = None
+        self.pyramid = self.lobes = self.warp = self.env_warp = None
         self.active = False
         self.needs_emitter_sampling = True
         other_emitters = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
@@ -54,29 +62,31 @@ class ProductEnvironment:
             warnings.warn(f"mitsuba_shsampling: {self.reason}")
             return
         self.lobes = SceneLobes(scene, max_bands=options.max_bands)
-        if not self.lobes.has_product_lobes:
-            self.reason = "no BSDF in the scene has a lobe worth product sampling (all delta or unsupported)"
+        if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
+            self.reason = "every BSDF in the scene is delta: no shading point samples the environment"
             return
         self.pyramid = EnvPyramid(self.emitter, mis_compensation=options.mis_compensation)
         if self.pyramid.is_black:
             self.reason = "the environment map is black"
             return
-        warp_options = dict(sh_depth=options.warp_sh_depth, defensive_share=options.defensive_share,
-                            proxy_depth=options.warp_proxy_depth)
-        self.warp = ProductWarp(self.pyramid, **warp_options)
+        self.env_warp = EnvironmentWarp(self.pyramid)
         #: The product with the map itself (not compensated): the strategy of
         #: lanes where it carries every sample, so that nothing is left to a
         #: BSDF sample that does not run there. The same warp when the scene's
         #: pyramid is not compensated; built only on request (``plain_product``,
         #: a second pyramid) otherwise, and None without it.
-        self.warp_plain = self.warp
-        if self.pyramid.mis_compensation:
-            self.warp_plain = ProductWarp(EnvPyramid(self.emitter), **warp_options) if plain_product else None
+        self.warp_plain = None
+        if self.lobes.has_product_lobes:
+            warp_options = dict(sh_depth=options.warp_sh_depth, defensive_share=options.defensive_share,
+                                proxy_depth=options.warp_proxy_depth)
+            self.warp = self.warp_plain = ProductWarp(self.pyramid, **warp_options)
+            if self.pyramid.mis_compensation:
+                self.warp_plain = ProductWarp(EnvPyramid(self.emitter), **warp_options) if plain_product else None
         self.active = True
         self.reason = ""
-        # Mitsuba's emitter sampling is only traced when some lane can use it:
-        # other emitters, or smooth BSDFs without a product lobe.
-        self.needs_emitter_sampling = bool(other_emitters) or self.lobes.has_unsupported_lobes
+        # Mitsuba's emitter sampling is only traced when some lane can use it: every
+        # smooth lane samples the environment through this object.
+        self.needs_emitter_sampling = bool(other_emitters)
 
     # Per-lane pieces shared by the integrators. When the scene does not use
     # product sampling they reduce to Mitsuba's own strategies and trace nothing.
@@ -84,7 +94,7 @@ class ProductEnvironment:
     def lobe(self, si: mi.SurfaceInteraction3f, smooth: mi.Bool):
         """(lobe, use_product): the lobe proxy at ``si`` in the grid frame
         (:class:`LaneLobe`); (None, False) where product sampling does not run."""
-        if not self.active:
+        if self.warp is None:
             return None, mi.Bool(False)
         coeffs, proxy, use_product = self.lobes.coefficients_and_proxy(si, self.pyramid.grid_from_world, smooth)
         return LaneLobe(coeffs, proxy), use_product & smooth
@@ -114,25 +124,47 @@ class ProductEnvironment:
                           true_fn=lambda c, v: self.warp_plain.sample(c.coeffs, v, c.proxy),
                           false_fn=lambda c, v: self.warp.sample(c.coeffs, v, c.proxy))
 
-    def pdf(self, lobe, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
-        """Product-sampling pdf of world direction ``d`` (0 where inactive)."""
+    def sample_environment(self, lobe, u: mi.Point2f, use_product, product_only):
+        """(direction, exact pdf) of one sample of the lane's environment strategy: the
+        product (:meth:`sample_product`) in ``use_product`` lanes, the environment alone
+        elsewhere. Symbolic branches: a SIMD packet runs only the walks its lanes need."""
+        if self.warp is None:
+            return self.env_warp.sample(u)
+        return dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
+                          true_fn=lambda c, v: self.sample_product(c, v, product_only),
+                          false_fn=lambda c, v: self.env_warp.sample(v))
+
+    def pdf(self, lobe, use_product, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
+        """Pdf of world direction ``d`` under the lane's environment strategy: the
+        product's in ``use_product`` lanes, the environment alone's in the others
+        (0 where not ``active``, and everywhere when the scene builds nothing)."""
         if not self.active:
             return mi.Float(0.0)
-        # A symbolic branch: a SIMD packet with no lane that needs the walk
-        # (sky, delta or occluded BSDF samples) skips it.
-        return dr.if_stmt(args=(lobe, d), cond=mi.Bool(active),
-                          true_fn=lambda c, v: self.warp.pdf(c.coeffs, v, c.proxy),
-                          false_fn=lambda c, v: mi.Float(0.0))
+        active = mi.Bool(active)
+        # Symbolic branches: a SIMD packet with no lane that needs a walk (sky, delta or
+        # occluded BSDF samples) skips it.
+        env_pdf = dr.if_stmt(args=(d,), cond=active & ~use_product,
+                             true_fn=lambda v: self.env_warp.pdf(v),
+                             false_fn=lambda v: mi.Float(0.0))
+        if self.warp is None:
+            return env_pdf
+        product_pdf = dr.if_stmt(args=(lobe, d), cond=active & use_product,
+                                 true_fn=lambda c, v: self.warp.pdf(c.coeffs, v, c.proxy),
+                                 false_fn=lambda c, v: mi.Float(0.0))
+        return dr.select(use_product, product_pdf, env_pdf)
 
-    def hit_pdf(self, emitter, use_product: mi.Bool, product_pdf, emitter_pdf):
-        """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the
-        product pdf for the environment in product lanes, Mitsuba's otherwise."""
+    def hit_pdf(self, emitter, strategy_pdf, emitter_pdf):
+        """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the lane's
+        environment strategy (:meth:`pdf`) for the environment, Mitsuba's otherwise."""
         if not self.active:
             return emitter_pdf
-        return dr.select(use_product & self.is_environment(emitter), product_pdf, emitter_pdf)
+        return dr.select(self.is_environment(emitter), strategy_pdf, emitter_pdf)
 
-    def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, product_only, frac_e, frac_b):
-        """One product sample of the environment (BSDF value x radiance / pdf).
+    def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, smooth, product_only,
+                    frac_e, frac_b):
+        """One sample of the environment (BSDF value x radiance / pdf) in the ``smooth``
+        lanes: from the product in ``use_product`` lanes, from the environment alone in
+        the others (:meth:`sample_environment`).
 
         In ``product_only`` lanes (:meth:`product_carries_all`) it is one of
         the lane's equally weighted samples: weight ``frac_e``. Elsewhere it
@@ -140,27 +172,27 @@ class ProductEnvironment:
         strategies' sample-count fractions."""
         if not self.active:
             return mi.Spectrum(0.0)
-        # Packets without a product lane (sky, delta BSDFs, unsupported lobes) skip the walk.
-        d, pdf_p = dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
-                              true_fn=lambda c, v: self.sample_product(c, v, product_only),
+        smooth = mi.Bool(smooth)
+        # Packets without a smooth lane (sky, delta BSDFs) skip the walks.
+        d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
+                              true_fn=lambda c, v: self.sample_environment(c, v, use_product, product_only),
                               false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
-        act = use_product & (pdf_p > 0)
+        act = smooth & (pdf_e > 0)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
         act &= ~scene.ray_test(si.spawn_ray(d), act)
         Le = self.emitter.eval(environment_ray_target(d), act)
-        weight = dr.select(product_only, frac_e, mis_weight(pdf_p * frac_e, bsdf_pdf * frac_b))
-        return dr.select(act, bsdf_val * Le * (weight / pdf_p), 0.0)
+        weight = dr.select(product_only, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b))
+        return dr.select(act, bsdf_val * Le * (weight / pdf_e), 0.0)
 
-    def emitter_nee(self, scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b,
-                    product_only=False):
+    def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, product_only=False):
         """One sample of Mitsuba's emitter sampling, without the environment's
-        share in product lanes (that belongs to :meth:`product_nee`); not
-        traced at all when no lane can use it. In ``product_only`` lanes no
-        BSDF sample runs, so its weight is 1."""
+        share where this object samples it (:meth:`product_nee`); not traced at all
+        when no lane can use it. In ``product_only`` lanes no BSDF sample runs, so
+        its weight is 1."""
         if not self.needs_emitter_sampling:
             return mi.Spectrum(0.0)
         def left_out(emitter):
-            return use_product & self.is_environment(emitter) if self.active else mi.Bool(False)
+            return self.is_environment(emitter) if self.active else mi.Bool(False)
 
         return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
                                       frac_e, frac_b, weight_one=product_only)

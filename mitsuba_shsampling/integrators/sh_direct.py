@@ -73,18 +73,18 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # strategy per sample type under MIS.
         product_only = env.product_carries_all(si, bsdf, use_product) if options.product_allocation and n_b > 0 else False
 
-        # ------ Environment: product sampling; other emitters: Mitsuba's sampling ------
+        # ------ Environment: product (or environment-alone) sampling; other emitters: Mitsuba's ------
         for _ in range(n_e):
             L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe,
-                                 use_product, product_only, frac_e, frac_b) / n_e
+                                 use_product, smooth, product_only, frac_e, frac_b) / n_e
         for _ in range(n_e):
-            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, frac_e, frac_b,
-                                 product_only) / n_e
+            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, product_only) / n_e
 
-        # The emitter strategy of a BSDF-sampled direction: the product for the
-        # environment in product lanes, Mitsuba's sampling otherwise.
+        # The emitter strategy of a BSDF-sampled direction: the lane's environment
+        # strategy for the environment, Mitsuba's sampling for other emitters.
         def strategy_pdf(emitter, d, act, mitsuba_pdf):
-            return env.hit_pdf(emitter, use_product, env.pdf(lobe, d, act & use_product), mitsuba_pdf)
+            act = act & env.is_environment(emitter) if env.active else act
+            return env.hit_pdf(emitter, env.pdf(lobe, use_product, d, act), mitsuba_pdf)
 
         # ------------- BSDF sampling (a further product sample in product-only lanes) -------------
         for _ in range(n_b):
@@ -95,7 +95,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             L += dr.if_stmt(
                 args=(sample_1, sample_2), cond=product_only,
                 # A product sample whose share of the lane's samples is frac_b.
-                true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product,
+                true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product, smooth,
                                                      mi.Bool(True), frac_b, frac_e) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b) / n_b)

@@ -73,8 +73,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         prev_si = dr.zeros(mi.Interaction3f)
         prev_bsdf_pdf = mi.Float(1.0)
         prev_bsdf_delta = mi.Bool(True)
-        prev_product = mi.Bool(False)   # previous vertex drew environment NEE by product sampling
-        prev_product_pdf = mi.Float(0.0)  # ... and this is the product pdf of the current ray
+        # Pdf of the current ray under the previous vertex's environment strategy.
+        prev_env_pdf = mi.Float(0.0)
 
         while active:
             si = scene.ray_intersect(ray, active)
@@ -82,7 +82,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
             emitter = si.emitter(scene, active)
             ds = mi.DirectionSample3f(scene, si, prev_si)
-            em_pdf = env.hit_pdf(emitter, prev_product, prev_product_pdf,
+            em_pdf = env.hit_pdf(emitter, prev_env_pdf,
                                  scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta))
             em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
             visible = active & ((depth > 0) | (not self.options.hide_emitters))
@@ -99,16 +99,15 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             lobe, use_product = env.lobe(si, smooth)
             # The BSDF sample always runs (it continues the path): no lane is product-only.
             L += beta * env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe,
-                                        use_product, False, 0.5, 0.5)
-            L += beta * env.emitter_nee(scene, sampler, si, bsdf, ctx, use_product, smooth, 0.5, 0.5)
+                                        use_product, smooth, False, 0.5, 0.5)
+            L += beta * env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, 0.5, 0.5)
 
             # ------------------------------ BSDF sampling ------------------------------
             bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_next),
                                           sampler.next_2d(active_next), active_next)
             d = si.to_world(bs.wo)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            prev_product_pdf = env.pdf(lobe, d, use_product & ~delta & active_next)
-            prev_product = use_product
+            prev_env_pdf = env.pdf(lobe, use_product, d, smooth & ~delta)
             prev_si = mi.Interaction3f(si)
             prev_bsdf_pdf = bs.pdf
             prev_bsdf_delta = delta

@@ -215,6 +215,24 @@ class ProductWeights:
         return ProductState(sh_state, state.p_product * chosen, pending.share, centre)
 
 
+def place_in_leaf(pyramid, leaf: Cell, t: mi.Point2f, prob, valid, u: mi.Point2f):
+    """(world direction, solid-angle pdf) of the point ``t`` in [0,1)^2 of ``leaf``, chosen with
+    probability ``prob``: uniform inside the leaf, as the pyramid's cell integrals assume."""
+    valid = valid & (not pyramid.is_black)
+    # Keep the point off the leaf's edges: the float32 round trip
+    # grid -> world (to_world) -> grid in pdf() moves a direction by
+    # ~1e-7, which on an edge can cross into a neighbouring leaf with
+    # another (possibly zero) probability. The margin moves at most
+    # LEAF_EDGE_MARGIN of a leaf's mass within the leaf; after `depth`
+    # rescalings t has only ~2^(depth - 24) resolution anyway.
+    t = dr.clip(t, LEAF_EDGE_MARGIN, 1.0 - LEAF_EDGE_MARGIN)
+    z = dr.lerp(leaf.z0, leaf.z1, t.x)
+    phi = dr.lerp(leaf.phi0, leaf.phi1, t.y)
+    d = pyramid.world_from_grid(grid_direction(z, phi))
+    d = dr.select(valid, d, mi.warp.square_to_uniform_sphere(u))
+    return d, dr.select(valid, prob / leaf.area, 0.0)
+
+
 class ProductWarp:
     """Product sampler of an SH lobe and an environment map.
 
@@ -267,19 +285,7 @@ class ProductWarp:
         # Below the product levels both parts of the mixture follow the
         # environment: its own pyramid finishes the walk.
         leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, cell, self.depth, t)
-        valid &= not self.pyramid.is_black
-        # Keep the point off the leaf's edges: the float32 round trip
-        # grid -> world (to_world) -> grid in pdf() moves a direction by
-        # ~1e-7, which on an edge can cross into a neighbouring leaf with
-        # another (possibly zero) probability. The margin moves at most
-        # LEAF_EDGE_MARGIN of a leaf's mass within the leaf; after `depth`
-        # rescalings t has only ~2^(depth - 24) resolution anyway.
-        t = dr.clip(t, LEAF_EDGE_MARGIN, 1.0 - LEAF_EDGE_MARGIN)
-        z = dr.lerp(leaf.z0, leaf.z1, t.x)
-        phi = dr.lerp(leaf.phi0, leaf.phi1, t.y)
-        d = self.pyramid.world_from_grid(grid_direction(z, phi))
-        d = dr.select(valid, d, mi.warp.square_to_uniform_sphere(u))
-        return d, dr.select(valid, prob * p_leaf / leaf.area, 0.0)
+        return place_in_leaf(self.pyramid, leaf, t, prob * p_leaf, valid, u)
 
     def pdf(self, coeffs, d: mi.Vector3f, proxy: ProxyLobe | None = None) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
@@ -288,3 +294,33 @@ class ProductWarp:
         cell, _, prob, _ = walk_pdf(provider, provider.walk_depth, z, phi)
         leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.depth, z, phi)
         return prob * p_leaf / leaf.area
+
+
+class EnvironmentWarp:
+    """The environment alone: directions in proportion to the pyramid's luminance.
+
+    The product's defensive part on its own, for shading points where no lobe is
+    product-sampled (anisotropic, transmissive or frame-perturbing BSDFs): one
+    telescoped descent of the additive pyramid from its root, about half the work
+    per level of a product level (:func:`.hierarchy.descend_pyramid_sample`). With a
+    MIS-compensated pyramid it is the compensated environment strategy, which
+    needs a BSDF sample beside it to cover the directions it leaves out.
+
+    ``sample(u)`` returns (world direction, solid-angle pdf); ``pdf(d)`` evaluates
+    the same density for world directions.
+    """
+
+    def __init__(self, pyramid):
+        self.pyramid = pyramid
+        self.depth = check_depth(pyramid.depth)
+
+    def sample(self, u: mi.Point2f):
+        """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
+        leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, Cell(0, mi.UInt32(0), mi.UInt32(0)), self.depth, u)
+        return place_in_leaf(self.pyramid, leaf, t, p_leaf, mi.Bool(True), u)
+
+    def pdf(self, d: mi.Vector3f) -> mi.Float:
+        """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
+        z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
+        leaf, p_leaf = descend_pyramid_pdf(self.pyramid, Cell(0, mi.UInt32(0), mi.UInt32(0)), self.depth, z, phi)
+        return p_leaf / leaf.area
