@@ -28,9 +28,11 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     :mod:`mitsuba_shsampling.warp.product`. Product and BSDF samples are
     combined with the power heuristic using sample-count fractions, exactly as
     :monosp:`direct` combines its strategies. Other emitters (area, point,
-    ...) use Mitsuba's emitter sampling. Delta and unsupported BSDFs, and
-    scenes without an ``envmap``, fall back to Mitsuba's own sampling and
-    build nothing. The 2D sample of each product sample comes from the
+    ...) use Mitsuba's emitter sampling. BSDFs without a product lobe
+    (anisotropic, transmissive, ``bumpmap``/``normalmap``) sample the
+    environment alone from the same (MIS-compensated) pyramid; delta BSDFs
+    and scenes without an ``envmap`` use Mitsuba's own sampling and build
+    nothing. The 2D sample of each product sample comes from the
     scene's sampler (``next_2d``), so stratification carries through the warp.
 
     .. tabs::

@@ -159,8 +159,8 @@ class SceneLobes:
         row_of_id: dict[int, int] = {}
         needed_bands = 0
         #: Some smooth BSDF has no product lobe (anisotropic, transmissive, a
-        #: frame-perturbing wrapper, or an unusable fit): its lanes need
-        #: Mitsuba's own environment sampling.
+        #: frame-perturbing wrapper, or an unusable fit): its lanes sample the
+        #: environment alone.
         self.has_unsupported_lobes = False
         for shape in scene.shapes():
             bsdf = shape.bsdf()
@@ -178,15 +178,15 @@ class SceneLobes:
             elif support == "product" and not self._fit_is_usable(params):
                 support = "unsupported"
                 # An emitter's own shape gets a black BSDF by default: nothing
-                # to warn about (its lanes still get Mitsuba's sampling).
+                # to warn about (its lanes still sample the environment alone).
                 why = None if shape.is_emitter() else "its fitted lobe has no energy at some view elevation"
             if support == "unsupported":
                 self.has_unsupported_lobes = True
             if why is not None:
                 warnings.warn(
                     f"SceneLobes: BSDF '{bsdf.id()}' ({bsdf.class_name()}, flags "
-                    f"{int(bsdf.flags()):#x}): {why}; its surfaces use Mitsuba's own "
-                    "environment sampling instead of product sampling.", stacklevel=2)
+                    f"{int(bsdf.flags()):#x}): {why}; its surfaces sample the environment "
+                    "alone (MIS-compensated like the product) instead of the product.", stacklevel=2)
             if support != "product":
                 row_of_id[key] = 0
                 continue
