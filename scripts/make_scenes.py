@@ -224,6 +224,17 @@ def rectangle(name: str, transform: str, bsdf: str) -> str:
     return transformed("rectangle", name, transform, bsdf)
 
 
+def slab(name: str, transform: str, bsdf: str) -> str:
+    """A 2 cm thick wall (a cube mesh) where ``transform`` places a rectangle.
+
+    The room is built of slabs, not of Mitsuba's infinitely thin ``rectangle`` shapes: with
+    rectangles meeting at the room's edges, Mitsuba's own ``direct`` with emitter samples only
+    converged 2.1 % above ``direct`` 1+1 (a bias t of +24 to +55 over 16 passes), so strategies
+    disagreed on the scene itself; with slabs they agree within 0.01 %.
+    """
+    return transformed("cube", name, '<scale z="0.01"/>' + transform, bsdf)
+
+
 def material_studio() -> str:
     body = HEADER.format(title="Material studio: ten materials on a tiled ground, a 115k-triangle torus knot.",
                          fov=38, origin="0, 2.3, 6.4", target="0, 0.75, 0")
@@ -354,13 +365,13 @@ def interior() -> str:
     # Room: x in [-3, 3], y in [0, 3], z in [-3, 3]; the front (z = 3) is open, the left
     # wall (x = -3) has a window z in [-1.6, 1.2], y in [0.8, 2.5]. Rectangles span
     # [-1, 1]^2 before their transform and face +z.
-    body += rectangle("floor", '<rotate x="1" angle="-90"/><scale x="3" y="1" z="3"/>', '<ref id="varnished_wood"/>')
-    body += rectangle("ceiling", '<rotate x="1" angle="90"/><scale x="3" y="1" z="3"/><translate y="3"/>', wall)
-    body += rectangle("back_wall", '<scale x="3" y="1.5"/><translate y="1.5" z="-3"/>', wall)
-    body += rectangle("right_wall", '<rotate y="1" angle="-90"/><scale x="1" y="1.5" z="3"/><translate x="3" y="1.5"/>', wall)
+    body += slab("floor", '<rotate x="1" angle="-90"/><scale x="3" y="1" z="3"/>', '<ref id="varnished_wood"/>')
+    body += slab("ceiling", '<rotate x="1" angle="90"/><scale x="3" y="1" z="3"/><translate y="3"/>', wall)
+    body += slab("back_wall", '<scale x="3" y="1.5"/><translate y="1.5" z="-3"/>', wall)
+    body += slab("right_wall", '<rotate y="1" angle="-90"/><scale x="1" y="1.5" z="3"/><translate x="3" y="1.5"/>', wall)
     for name, (z0, z1, y0, y1) in {"left_wall_below": (-3, 3, 0, 0.8), "left_wall_above": (-3, 3, 2.5, 3),
                                    "left_wall_back": (-3, -1.6, 0.8, 2.5), "left_wall_front": (1.2, 3, 0.8, 2.5)}.items():
-        body += rectangle(name, f'<rotate y="1" angle="90"/><scale x="1" y="{(y1 - y0) / 2}" z="{(z1 - z0) / 2}"/>'
+        body += slab(name, f'<rotate y="1" angle="90"/><scale x="1" y="{(y1 - y0) / 2}" z="{(z1 - z0) / 2}"/>'
                                 f'<translate x="-3" y="{(y0 + y1) / 2}" z="{(z0 + z1) / 2}"/>', wall)
     # Furnishings: a table with a vase and a ball on it, a sofa, a metal cabinet, a rug.
     body += box("table_top", '<scale x="0.8" y="0.04" z="0.5"/><translate x="-0.9" y="0.76" z="-0.8"/>',
@@ -392,7 +403,7 @@ def interior() -> str:
     body += box("cabinet", '<scale x="0.3" y="0.7" z="0.6"/><translate x="2.68" y="0.7" z="0.2"/>',
                 '<bsdf type="roughconductor"><string name="distribution" value="ggx"/>'
                 '<float name="alpha" value="0.25"/><string name="material" value="Al"/></bsdf>')
-    body += rectangle("rug", '<rotate x="1" angle="-90"/><scale x="1.2" y="1" z="0.8"/><translate x="0.2" y="0.005" z="0.3"/>',
+    body += rectangle("rug", '<rotate x="1" angle="-90"/><scale x="1.2" y="1" z="0.8"/><translate x="0.2" y="0.016" z="0.3"/>',
                       """<bsdf type="roughplastic">
             <string name="distribution" value="beckmann"/>
             <float name="alpha" value="0.4"/>
