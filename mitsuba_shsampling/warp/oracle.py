@@ -45,7 +45,7 @@ import mitsuba as mi
 
 from ..grid import Cell, grid_coordinates, grid_direction
 from .hierarchy import LAST_BELOW_ONE, descend_pyramid_pdf, descend_pyramid_sample
-from .product import DEFAULT_DEFENSIVE_SHARE, LEAF_EDGE_MARGIN, check_defensive_share
+from .product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share, place_in_leaf
 
 #: Cells per side of the table. Measured (64 px, 8 spp, 8 passes, MSE against ``direct``):
 #: on a GGX 0.1 sphere under immenstadter_horn, oracle-only sampling gave 0.175 / 0.131 /
@@ -159,13 +159,8 @@ class OracleWarp:
         t = dr.select(from_env, env_t, t)
         # Inside the cell both components follow the environment.
         leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, cell, self.pyramid.depth, t)
-        # Off the leaf's edges, so that the float32 round trip through the
-        # world frame lands in the same leaf in pdf() (see ProductWarp.sample).
-        t = dr.clip(t, LEAF_EDGE_MARGIN, 1.0 - LEAF_EDGE_MARGIN)
-        z, phi = dr.lerp(leaf.z0, leaf.z1, t.x), dr.lerp(leaf.phi0, leaf.phi1, t.y)
-        d = self.pyramid.world_from_grid(grid_direction(z, phi))
-        pdf = self.cell_probability(f, table, cell, active) * p_leaf / leaf.area
-        return d, dr.select(active, pdf, 0.0)
+        return place_in_leaf(self.pyramid, leaf, t, self.cell_probability(f, table, cell, active) * p_leaf,
+                             mi.Bool(active), u)
 
     def pdf(self, f: Lobe, table: OracleTable, d: mi.Vector3f, active: mi.Bool = True) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``;
