@@ -7,7 +7,7 @@ expected squared error of one pass, tails included), the median pass time and
 the efficiency 1 / (variance x time); ``--json`` writes the same.
 
     python scripts/ab_interleaved.py SCENE.xml --envmap MAP --res 192 --spp 4 --passes 16 \\
-        '{"type": "direct"}' '{"type": "sh_direct"}' '{"type": "sh_direct", "product_allocation": true}'
+        '{"type": "direct"}' '{"type": "sh_direct"}' '{"type": "sh_direct", "strategy": "product_only"}'
 """
 
 from __future__ import annotations

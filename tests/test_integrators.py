@@ -83,9 +83,12 @@ def render_passes(scene, integrator, spp=SPP, passes=PASSES):
                      for k in range(passes)])
 
 
-def assert_unbiased(scene, integrator, reference_integrator):
+def assert_unbiased(scene, integrator, reference_integrator, spp=SPP, passes=PASSES):
+    """Block means and the image mean within 5 standard errors of the reference's.
+    Estimators whose error comes from rare large samples need more ``spp`` x ``passes``:
+    a t-statistic over a few passes that miss the tail reads as a bias."""
     reference = render_passes(scene, reference_integrator, spp=REF_SPP // 4, passes=4)
-    images = render_passes(scene, integrator)
+    images = render_passes(scene, integrator, spp=spp, passes=passes)
     assert np.all(np.isfinite(images)), "render produced NaN/Inf"
 
     def block_means(x):  # (K, H, W, C) -> (K, blocks)

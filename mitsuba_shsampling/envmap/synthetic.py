@@ -46,6 +46,22 @@ def sun_sky_latlong(height: int, width: int, sun_direction=(0.3, 0.8, -0.5),
     return image
 
 
+def window_latlong(height: int, width: int, direction=(0.3, 0.8, 0.5), exponent: float = 6.0,
+                   peak: float = 40.0, ambient: float = 1.0) -> np.ndarray:
+    """A smooth interior-like light: ``ambient`` everywhere plus a broad bright
+    lobe ``peak * max(cos, 0)^exponent`` about ``direction`` (local +Y-up frame),
+    shape (H, W, 3), float32. No feature below the texel scale: the map where
+    a glossy lobe meets a broad bright region."""
+    axis = np.asarray(direction, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    theta = (np.arange(height) + 0.5) * np.pi / height
+    phi = (np.arange(width) + 0.5) * 2 * np.pi / width
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    cosine = st * (np.sin(phi)[None, :] * axis[0] - np.cos(phi)[None, :] * axis[2]) + ct * axis[1]
+    radiance = ambient + peak * np.clip(cosine, 0.0, 1.0) ** exponent
+    return np.repeat(radiance[..., None], 3, axis=-1).astype(np.float32)
+
+
 def envmap_emitter(image: np.ndarray, scale: float = 1.0, to_world=None):
     """Mitsuba ``envmap`` emitter holding ``image`` (H, W, 3) as radiance.
 

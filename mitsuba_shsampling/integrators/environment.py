@@ -7,11 +7,14 @@ delta/unsupported, builds nothing and the integrators behave like their
 Mitsuba counterparts.
 
 Where it is built, the environment is sampled by this package at every shading
-point with a smooth BSDF: the product where the BSDF has a product lobe, the
-environment alone (:class:`~mitsuba_shsampling.warp.product.EnvironmentWarp`, on
-the same pyramid, so MIS-compensated like the product) where it has none
-(anisotropic, transmissive and frame-perturbing BSDFs). Mitsuba's emitter
-sampling is left with the other emitters.
+point with a smooth BSDF, with the strategy (:mod:`.strategy`) of the lane's
+material: the product, the product carrying every sample, or the environment
+alone (Mitsuba's own envmap sampling, MIS-compensated like the product:
+:class:`~mitsuba_shsampling.envmap.emitter.EmitterDirections`). Materials without a product lobe
+(anisotropic, transmissive and frame-perturbing BSDFs) use the environment
+alone. With ``strategy`` ``auto`` the integrators choose per material before
+the first pass (:mod:`.chooser`). Mitsuba's emitter sampling is left with the
+other emitters.
 """
 
 from __future__ import annotations
@@ -22,34 +25,47 @@ from typing import Callable, NamedTuple
 import drjit as dr
 import mitsuba as mi
 
+from ..envmap.emitter import EmitterDirections, compensated_copy
 from ..envmap.pyramid import EnvPyramid
 from ..lobes import SceneLobes
-from ..lobes.scene_lobes import registry_id
+from ..scene_materials import registry_id, scene_materials
 from ..traversal import readable_parameters
-from ..warp.product import EnvironmentWarp, ProductWarp
+from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from .estimators import environment_ray_target, is_emitter, mis_weight, mitsuba_emitter_sample
 from .options import ProductOptions
+from .strategy import AUTO, Strategy, StrategyTable, strategy_named
 
 
 class ProductEnvironment:
-    """Environment product sampling for one scene.
+    """Environment sampling for one scene, with a strategy per material.
 
     Built from the plugin's checked ``options`` (``max_bands``, ``sh_depth``,
-    ``proxy_depth``, ``mis_compensation``, ``defensive_share``); ``plain_product``
-    also builds the product with the uncompensated map (:attr:`warp_plain`).
+    ``proxy_depth``, ``mis_compensation``, ``defensive_share``, ``strategy``);
+    ``carry_all`` allows the strategies that carry every sample of a lane
+    (:attr:`Strategy.PRODUCT_ONLY`, :attr:`Strategy.ENVIRONMENT_ONLY`: ``sh_direct``
+    with BSDF samples); the first needs the product with the uncompensated map
+    (:attr:`warp_plain`).
 
-    Attributes: ``emitter`` (the envmap or None), ``active`` (bool: product
-    sampling runs for this scene), ``reason`` (why not, when inactive),
-    ``pyramid``, ``lobes``, ``warp``, ``env_warp`` (the environment alone, for
-    smooth lanes without a product lobe), ``needs_emitter_sampling`` (bool:
-    Mitsuba's emitter sampling has work to do: emitters besides the environment).
+    Attributes: ``emitter`` (the envmap or None), ``active`` (bool: this package
+    samples the environment in this scene), ``reason`` (why not, when inactive),
+    ``pyramid``, ``lobes``, ``warp`` (the product; None where no material may run
+    it), ``env_directions`` (the environment alone, compensated like the
+    pyramid), ``env_plain`` (the environment alone, uncompensated),
+    ``strategies`` (:class:`StrategyTable`: each material's strategy),
+    ``choice`` (the chooser's :class:`~.chooser.StrategyChoice` once made),
+    ``needs_emitter_sampling`` (bool: Mitsuba's emitter sampling has work to do:
+    emitters besides the environment).
     """
 
-    def __init__(self, scene: mi.Scene, options: ProductOptions, plain_product: bool = False):
+    def __init__(self, scene: mi.Scene, options: ProductOptions, carry_all: bool = False):
         self.scene = scene
         self.emitter = scene.environment()
-        self.pyramid = self.lobes = self.warp = self.env_warp = None
+        self.pyramid = self.lobes = self.warp = self.warp_plain = None
+        self.env_directions = self.env_plain = None
+        self.strategies = self.choice = None
+        self.strategy_option = options.strategy
+        self.carry_all = carry_all
         self.active = False
         self.needs_emitter_sampling = True
         other_emitters = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
@@ -69,46 +85,109 @@ class ProductEnvironment:
         if self.pyramid.is_black:
             self.reason = "the environment map is black"
             return
-        self.env_warp = EnvironmentWarp(self.pyramid)
+        # The environment strategies are Mitsuba's own envmap sampling (compensated
+        # like the pyramid): the strategies of Mitsuba's `direct`, at its cost. A
+        # telescoped descent of the pyramid (removed) had 2.4x the variance on a
+        # diffuse plane under a 0.5-degree sun (docs/MEASUREMENTS.md).
+        self.env_plain = EmitterDirections(self.emitter)
+        self.env_directions = (EmitterDirections(compensated_copy(self.emitter)) if self.pyramid.mis_compensation
+                               else self.env_plain)
+        forced = None if options.strategy == AUTO else strategy_named(options.strategy)
         #: The product with the map itself (not compensated): the strategy of
         #: lanes where it carries every sample, so that nothing is left to a
         #: BSDF sample that does not run there. The same warp when the scene's
-        #: pyramid is not compensated; built only on request (``plain_product``,
-        #: a second pyramid) otherwise, and None without it.
-        self.warp_plain = None
-        if self.lobes.has_product_lobes:
+        #: pyramid is not compensated; built only where that strategy is
+        #: allowed (``carry_all``, a second pyramid) otherwise.
+        if self.lobes.has_product_lobes and (forced is None or forced.uses_product):
             warp_options = dict(sh_depth=options.warp_sh_depth, defensive_share=options.defensive_share,
                                 proxy_depth=options.warp_proxy_depth)
             self.warp = self.warp_plain = ProductWarp(self.pyramid, **warp_options)
             if self.pyramid.mis_compensation:
-                self.warp_plain = ProductWarp(EnvPyramid(self.emitter), **warp_options) if plain_product else None
+                self.warp_plain = ProductWarp(EnvPyramid(self.emitter), **warp_options) if carry_all else None
+        smooth = [m.bsdf for m in scene_materials(scene)
+                  if mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth)]
+        first = forced or Strategy.PRODUCT
+        self.strategies = StrategyTable({registry_id(b): self._runnable(registry_id(b), first) for b in smooth})
         self.active = True
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it: every
         # smooth lane samples the environment through this object.
         self.needs_emitter_sampling = bool(other_emitters)
 
+    # -- Host side: the strategy of each material -----------------------------
+
+    @property
+    def awaits_choice(self) -> bool:
+        """``strategy`` is ``auto`` and the chooser has not run for this scene yet."""
+        return self.strategies is not None and self.strategy_option == AUTO and self.choice is None
+
+    def allowed(self, key: int) -> list[Strategy]:
+        """The strategies material ``key`` (registry id) can run: the environment
+        always; the product where its BSDF has a product lobe and the product is
+        built; the strategies without a BSDF sample where the integrator allows
+        them and the BSDF has no Dirac part (which only a BSDF sample reaches)."""
+        bsdf = self._bsdf(key)
+        if bsdf is None:
+            return [Strategy.ENVIRONMENT]
+        no_delta = not mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
+        lobed = self.warp is not None and key in self.lobes.bsdfs_with_lobes
+        result = [Strategy.ENVIRONMENT]
+        result += [Strategy.ENVIRONMENT_ONLY] if self.carry_all and no_delta else []
+        result += [Strategy.PRODUCT] if lobed else []
+        result += [Strategy.PRODUCT_ONLY] if lobed and no_delta and self.carry_all and self.warp_plain else []
+        return result
+
+    def _runnable(self, key: int, strategy: Strategy) -> Strategy:
+        """``strategy``, or the nearest one material ``key`` can run."""
+        while strategy not in self.allowed(key):
+            strategy = strategy.fallback
+        return strategy
+
+    def _bsdf(self, key: int):
+        return next((m.bsdf for m in scene_materials(self.scene) if registry_id(m.bsdf) == key), None)
+
+    def material_name(self, key: int) -> str:
+        """The report name (:mod:`~mitsuba_shsampling.scene_materials`) of the material
+        whose BSDF has registry id ``key``."""
+        names = {registry_id(m.bsdf): m.name for m in scene_materials(self.scene)}
+        return names.get(key, f"bsdf#{key}")
+
+    def drop_product(self) -> None:
+        """Trace no product code from now on: materials on a product strategy fall
+        back to the environment, in a kernel as lean as Mitsuba's ``direct`` (the
+        product's code in a kernel costs its other lanes 7-30 % even where skipped)."""
+        self.warp = self.warp_plain = None
+        self.strategies.assign({key: self._runnable(key, self.strategies.of(key)) for key in self.strategies.ids})
+
     # Per-lane pieces shared by the integrators. When the scene does not use
     # product sampling they reduce to Mitsuba's own strategies and trace nothing.
 
     def lobe(self, si: mi.SurfaceInteraction3f, smooth: mi.Bool):
         """(lobe, use_product): the lobe proxy at ``si`` in the grid frame
-        (:class:`LaneLobe`); (None, False) where product sampling does not run."""
+        (:class:`LaneLobe`), and the lanes whose material runs a product strategy;
+        (None, False) where no material can. Lanes on the environment strategy
+        look up no lobe (masked gathers, a skipped rotation)."""
         if self.warp is None:
             return None, mi.Bool(False)
-        coeffs, proxy, use_product = self.lobes.coefficients_and_proxy(si, self.pyramid.grid_from_world, smooth)
-        return LaneLobe(coeffs, proxy), use_product & smooth
+        smooth = mi.Bool(smooth)
+        code = self.strategies.lane(si, smooth)
+        wants_product = smooth & ((code == int(Strategy.PRODUCT)) | (code == int(Strategy.PRODUCT_ONLY)))
+        coeffs, proxy, use_product = self.lobes.coefficients_and_proxy(si, self.pyramid.grid_from_world,
+                                                                       wants_product)
+        return LaneLobe(coeffs, proxy), use_product & wants_product
 
-    def product_carries_all(self, si, bsdf, use_product: mi.Bool) -> mi.Bool:
-        """Per lane: the product alone follows the integrand closely (its lobe
-        needs no widening, :meth:`SceneLobes.represents_exactly`) and the BSDF
-        has no Dirac part, so every sample of the lane goes to the product,
-        drawn from the map itself (coverage without a BSDF sample). False
-        (no lane) when the uncompensated product was not built."""
-        if not self.active or self.warp_plain is None:
+    def carries_all(self, si, bsdf, smooth: mi.Bool) -> mi.Bool:
+        """Per lane: the lane's material runs a strategy that carries every sample
+        (:attr:`Strategy.PRODUCT_ONLY`, :attr:`Strategy.ENVIRONMENT_ONLY`): no BSDF
+        sample runs there, and the strategy draws from the uncompensated map
+        (coverage without a BSDF sample). False (no lane, nothing traced) where the
+        integrator does not allow it."""
+        if not self.active or not self.carry_all:
             return False
+        code = self.strategies.lane(si, smooth)
         no_delta = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
-        return use_product & no_delta & self.lobes.represents_exactly(si, use_product)
+        return mi.Bool(smooth) & no_delta & ((code == int(Strategy.PRODUCT_ONLY))
+                                             | (code == int(Strategy.ENVIRONMENT_ONLY)))
 
     def sample_product(self, lobe, u: mi.Point2f, plain):
         """(direction, exact pdf) of one product sample: from :attr:`warp_plain`
@@ -124,15 +203,23 @@ class ProductEnvironment:
                           true_fn=lambda c, v: self.warp_plain.sample(c.coeffs, v, c.proxy),
                           false_fn=lambda c, v: self.warp.sample(c.coeffs, v, c.proxy))
 
-    def sample_environment(self, lobe, u: mi.Point2f, use_product, product_only):
+    def sample_alone(self, u: mi.Point2f, plain):
+        """(direction, pdf) of the environment alone: uncompensated in ``plain`` lanes."""
+        if plain is False or self.env_plain is self.env_directions:
+            return self.env_directions.sample(u)
+        return dr.if_stmt(args=(u,), cond=plain, true_fn=self.env_plain.sample,
+                          false_fn=self.env_directions.sample)
+
+    def sample_environment(self, lobe, u: mi.Point2f, use_product, carries_all):
         """(direction, exact pdf) of one sample of the lane's environment strategy: the
         product (:meth:`sample_product`) in ``use_product`` lanes, the environment alone
-        elsewhere. Symbolic branches: a SIMD packet runs only the walks its lanes need."""
+        elsewhere, from the uncompensated map in ``carries_all`` lanes. Symbolic
+        branches: a SIMD packet runs only the walks its lanes need."""
         if self.warp is None:
-            return self.env_warp.sample(u)
+            return self.sample_alone(u, carries_all)
         return dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
-                          true_fn=lambda c, v: self.sample_product(c, v, product_only),
-                          false_fn=lambda c, v: self.env_warp.sample(v))
+                          true_fn=lambda c, v: self.sample_product(c, v, carries_all),
+                          false_fn=lambda c, v: self.sample_alone(v, carries_all))
 
     def pdf(self, lobe, use_product, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
         """Pdf of world direction ``d`` under the lane's environment strategy: the
@@ -144,7 +231,7 @@ class ProductEnvironment:
         # Symbolic branches: a SIMD packet with no lane that needs a walk (sky, delta or
         # occluded BSDF samples) skips it.
         env_pdf = dr.if_stmt(args=(d,), cond=active & ~use_product,
-                             true_fn=lambda v: self.env_warp.pdf(v),
+                             true_fn=lambda v: self.env_directions.pdf(v),
                              false_fn=lambda v: mi.Float(0.0))
         if self.warp is None:
             return env_pdf
@@ -160,34 +247,33 @@ class ProductEnvironment:
             return emitter_pdf
         return dr.select(self.is_environment(emitter), strategy_pdf, emitter_pdf)
 
-    def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, smooth, product_only,
+    def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, smooth, carries_all,
                     frac_e, frac_b):
         """One sample of the environment (BSDF value x radiance / pdf) in the ``smooth``
-        lanes: from the product in ``use_product`` lanes, from the environment alone in
-        the others (:meth:`sample_environment`).
+        lanes, with the lane's strategy (:meth:`sample_environment`).
 
-        In ``product_only`` lanes (:meth:`product_carries_all`) it is one of
-        the lane's equally weighted samples: weight ``frac_e``. Elsewhere it
-        is power-heuristic weighted against BSDF sampling with the
-        strategies' sample-count fractions."""
+        In ``carries_all`` lanes (:meth:`carries_all`) it is one of the lane's
+        equally weighted samples: weight ``frac_e``. Elsewhere it is
+        power-heuristic weighted against BSDF sampling with the strategies'
+        sample-count fractions."""
         if not self.active:
             return mi.Spectrum(0.0)
         smooth = mi.Bool(smooth)
         # Packets without a smooth lane (sky, delta BSDFs) skip the walks.
         d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
-                              true_fn=lambda c, v: self.sample_environment(c, v, use_product, product_only),
+                              true_fn=lambda c, v: self.sample_environment(c, v, use_product, carries_all),
                               false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
         act = smooth & (pdf_e > 0)
         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
         act &= ~scene.ray_test(si.spawn_ray(d), act)
         Le = self.emitter.eval(environment_ray_target(d), act)
-        weight = dr.select(product_only, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b))
+        weight = dr.select(carries_all, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b))
         return dr.select(act, bsdf_val * Le * (weight / pdf_e), 0.0)
 
-    def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, product_only=False):
+    def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False):
         """One sample of Mitsuba's emitter sampling, without the environment's
         share where this object samples it (:meth:`product_nee`); not traced at all
-        when no lane can use it. In ``product_only`` lanes no BSDF sample runs, so
+        when no lane can use it. In ``carries_all`` lanes no BSDF sample runs, so
         its weight is 1."""
         if not self.needs_emitter_sampling:
             return mi.Spectrum(0.0)
@@ -195,7 +281,7 @@ class ProductEnvironment:
             return self.is_environment(emitter) if self.active else mi.Bool(False)
 
         return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
-                                      frac_e, frac_b, weight_one=product_only)
+                                      frac_e, frac_b, weight_one=carries_all)
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""

@@ -79,7 +79,7 @@ def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, lef
 
 
 def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
-                            strategy_pdf: Callable, frac_e, frac_b) -> mi.Spectrum:
+                            strategy_pdf: Callable, frac_e, frac_b, mitsuba_pdf: bool = True) -> mi.Spectrum:
     """One BSDF sample of the emitters it hits, MIS-weighted against the
     lane's emitter strategy.
 
@@ -87,6 +87,8 @@ def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
     which the lane's emitter strategy draws direction ``d`` towards the hit
     ``emitter``, given Mitsuba's own emitter-sampling pdf ``mitsuba_pdf``
     (``active``: lanes that hit an emitter by a non-Dirac BSDF sample).
+    Without ``mitsuba_pdf`` (no emitter is sampled by Mitsuba) that pdf is 0
+    and not traced.
     """
     si, bsdf, active = hit.si, hit.bsdf, hit.active
     bs, bsdf_weight = bsdf.sample(hit.ctx, si, sample_1, sample_2, active)
@@ -98,7 +100,8 @@ def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
     Le = emitter.eval(si_b, act)
     delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
     ds = mi.DirectionSample3f(scene, si_b, si)
-    pdf_em = strategy_pdf(emitter, d, act & ~delta, scene.pdf_emitter_direction(si, ds, act & ~delta))
+    em_pdf = scene.pdf_emitter_direction(si, ds, act & ~delta) if mitsuba_pdf else mi.Float(0.0)
+    pdf_em = strategy_pdf(emitter, d, act & ~delta, em_pdf)
     pdf_em = dr.select(delta | ~hit.smooth, 0.0, pdf_em)
     weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)
     return dr.select(act, bsdf_weight * Le * weight, 0.0)

@@ -36,6 +36,7 @@ from ..warp.hierarchy import MAX_DEPTH
 from ..warp.oracle import (DEFAULT_RESOLUTION as DEFAULT_ORACLE_RESOLUTION,
                            MAX_RESOLUTION as MAX_ORACLE_RESOLUTION, check_resolution)
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, check_defensive_share
+from .strategy import AUTO, STRATEGY_NAMES, Strategy
 
 #: Band counts the lobe proxies support (:func:`~..lobes.scene_lobes.check_max_bands`).
 MIN_BANDS = DIFFUSE_BANDS
@@ -56,7 +57,7 @@ def _doc(text: str) -> dict:
     return {"doc": text}
 
 
-_ARTICLES = {int: "an integer", bool: "a boolean", float: "a float"}
+_ARTICLES = {int: "an integer", bool: "a boolean", float: "a float", str: "a string"}
 #: Mitsuba's names of property types, for messages.
 _TYPE_NAMES = {bool: "boolean", int: "integer", float: "float", str: "string"}
 
@@ -112,6 +113,17 @@ class ProductOptions(PluginOptions):
 
     hide_emitters: bool = dataclasses.field(default=False, metadata=_doc(
         "Hide directly visible emitters."))
+    strategy: str = dataclasses.field(default=AUTO, metadata=_doc(
+        "How each material samples the environment: ``environment`` (the environment alone, "
+        "MIS-compensated, with the BSDF samples: Mitsuba's ``direct`` with ``mis_compensation`` "
+        "on this package's pyramid, no lobe and no product walk), ``product`` (the SH lobe x "
+        "environment product with the BSDF samples, under MIS), ``product_only`` (``sh_direct`` "
+        "only: the product with the uncompensated map carries every sample and no BSDF sample "
+        "runs, for BSDFs without a Dirac part; the others use ``product``), or ``auto``: before "
+        "the first pass each material gets the strategy that minimises the predicted image error "
+        "at equal time, from the variance of each strategy at the camera's first hits and pilot "
+        "pass times (see integrators/chooser.py). Materials without a product lobe (anisotropic, "
+        "transmissive, ``bumpmap``/``normalmap``) always use ``environment``."))
     max_bands: int = dataclasses.field(default=DEFAULT_MAX_BANDS, metadata=_doc(
         f"Cap on the SH band count of the lobe proxies ({MIN_BANDS}..{MAX_BANDS}); the scene's "
         "band count follows its sharpest lobe, and sharper lobes are widened to what the cap "
@@ -138,7 +150,12 @@ class ProductOptions(PluginOptions):
         "is lit, so a clamped or inexact lobe never leaves lit directions to BSDF sampling alone "
         "(whose rare hits on a bright light are fireflies). In (0, 1]."))
 
+    #: Values of ``strategy`` this plugin accepts.
+    STRATEGIES: ClassVar[tuple] = (AUTO,) + STRATEGY_NAMES
+
     def _check_ranges(self) -> None:
+        if self.strategy not in self.STRATEGIES:
+            self._fail("strategy", "must be one of " + ", ".join(f"'{s}'" for s in self.STRATEGIES), self.strategy)
         try:
             check_max_bands(self.max_bands)
         except ValueError:
@@ -177,15 +194,6 @@ class DirectOptions(ProductOptions):
         "the number of Mitsuba emitter samples for any other emitters."))
     bsdf_samples: int = dataclasses.field(default=1, metadata=_doc(
         "BSDF samples per shading point."))
-    product_allocation: bool = dataclasses.field(default=False, metadata=_doc(
-        "Give every sample of a shading point to the product where it follows the integrand "
-        "closely: the lobe proxy needs no widening to fit ``max_bands`` and the BSDF has no Dirac "
-        "part (diffuse and rough lobes). Those lanes draw ``emitter_samples + bsdf_samples`` "
-        "product samples from the uncompensated map, equally weighted, and no BSDF sample; the "
-        "others combine product and BSDF samples under MIS. Off by default: it gains on diffuse "
-        "and rough spheres and loses on GGX 0.1 ones, whose error the MIS part keeps while the "
-        "pass takes longer (docs/MEASUREMENTS.md, \"Product allocation\")."))
-
     def _check_ranges(self) -> None:
         super()._check_ranges()
         self._check_sample_counts()
@@ -205,6 +213,8 @@ class PathOptions(ProductOptions):
     """Parameters of ``sh_path``."""
 
     PLUGIN: ClassVar[str] = "sh_path"
+    # The BSDF sample continues the path, so it always runs.
+    STRATEGIES: ClassVar[tuple] = (AUTO, Strategy.ENVIRONMENT.label, Strategy.PRODUCT.label)
 
     max_depth: int = dataclasses.field(default=-1, metadata=_doc(
         "Longest path, in vertices after the camera (-1: infinite). As in Mitsuba's "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .chooser import StrategyChooser
 from .environment import ProductEnvironment, SceneCache
 from .estimators import bsdf_sample_of_emitters, first_hit
 from .options import DirectOptions, document_parameters
@@ -23,16 +24,20 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     .. The rows are generated from integrators/options.py (DirectOptions).
 
     Like Mitsuba's :monosp:`direct`, but environment-map next-event estimation
-    draws directions in proportion to (BSDF lobe proxy) x (environment
+    can draw directions in proportion to (BSDF lobe proxy) x (environment
     luminance) with the hierarchical product warp of
-    :mod:`mitsuba_shsampling.warp.product`. Product and BSDF samples are
-    combined with the power heuristic using sample-count fractions, exactly as
+    :mod:`mitsuba_shsampling.warp.product`. Each material (BSDF instance) runs
+    one environment strategy (``strategy``): the product, the product carrying
+    every sample, or the environment alone; with ``auto`` (the default) the
+    one predicted to give the least error at equal time is chosen per
+    material before the first pass. Strategy and BSDF samples are combined
+    with the power heuristic using sample-count fractions, exactly as
     :monosp:`direct` combines its strategies. Other emitters (area, point,
     ...) use Mitsuba's emitter sampling. BSDFs without a product lobe
     (anisotropic, transmissive, ``bumpmap``/``normalmap``) sample the
     environment alone from the same (MIS-compensated) pyramid; delta BSDFs
     and scenes without an ``envmap`` use Mitsuba's own sampling and build
-    nothing. The 2D sample of each product sample comes from the
+    nothing. After a render, ``integrator.choice(scene)`` tells what was chosen. The 2D sample of each product sample comes from the
     scene's sampler (``next_2d``), so stratification carries through the warp.
 
     .. tabs::
@@ -41,24 +46,33 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             <integrator type="sh_direct">
                 <integer name="emitter_samples" value="1"/>
                 <integer name="bsdf_samples" value="1"/>
+                <string name="strategy" value="auto"/>
             </integrator>
 
         .. code-tab:: python
 
-            'type': 'sh_direct', 'emitter_samples': 1, 'bsdf_samples': 1
+            'type': 'sh_direct', 'emitter_samples': 1, 'bsdf_samples': 1, 'strategy': 'auto'
     """
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.options = options = DirectOptions.from_properties(props)
-        # Lanes that give every sample to the product need the uncompensated
-        # product: built only when allocation can happen.
-        plain_product = options.product_allocation and options.bsdf_samples > 0
-        self.scenes = SceneCache(lambda scene: ProductEnvironment(scene, options, plain_product))
+        # Without BSDF samples every environment sample already carries the lane.
+        carry_all = options.bsdf_samples > 0
+        self.scenes = SceneCache(lambda scene: ProductEnvironment(scene, options, carry_all))
+        self.chooser = StrategyChooser(options.emitter_samples, options.bsdf_samples)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        self.scenes.get(scene)  # build host-side state before tracing the pass
+        env = self.scenes.get(scene)  # build host-side state before tracing the pass
+        self.chooser.before_render(env, scene, sensor,
+                                   lambda pilot_spp: super(SHDirectIntegrator, self).render(scene, sensor, seed, pilot_spp))
         return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    def choice(self, scene):
+        """The strategy chosen for each material of ``scene``
+        (:class:`~mitsuba_shsampling.integrators.chooser.StrategyChoice`), None before
+        the first render or when ``strategy`` is forced or nothing is product-sampled."""
+        return self.scenes.get(scene).choice
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         env = self.scenes.get(scene)
@@ -70,17 +84,17 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
 
         lobe, use_product = env.lobe(si, smooth)
-        # Lanes where the product alone follows the integrand give it every
-        # sample (drawn from the uncompensated map); the others combine one
-        # strategy per sample type under MIS.
-        product_only = env.product_carries_all(si, bsdf, use_product) if options.product_allocation and n_b > 0 else False
+        # Lanes of materials whose strategy carries every sample (product_only,
+        # environment_only) give it the BSDF samples' share too, drawn from the
+        # uncompensated map; the others combine one strategy per sample type under MIS.
+        carries_all = env.carries_all(si, bsdf, smooth) if n_b > 0 else False
 
         # ------ Environment: product (or environment-alone) sampling; other emitters: Mitsuba's ------
         for _ in range(n_e):
             L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe,
-                                 use_product, smooth, product_only, frac_e, frac_b) / n_e
+                                 use_product, smooth, carries_all, frac_e, frac_b) / n_e
         for _ in range(n_e):
-            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, product_only) / n_e
+            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
 
         # The emitter strategy of a BSDF-sampled direction: the lane's environment
         # strategy for the environment, Mitsuba's sampling for other emitters.
@@ -88,19 +102,23 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             act = act & env.is_environment(emitter) if env.active else act
             return env.hit_pdf(emitter, env.pdf(lobe, use_product, d, act), mitsuba_pdf)
 
-        # ------------- BSDF sampling (a further product sample in product-only lanes) -------------
+        # Mitsuba's pdf of a hit emitter is only needed where Mitsuba samples some emitter.
+        mitsuba_pdf = env.needs_emitter_sampling or not env.active
+
+        # ------- BSDF sampling (a further strategy sample where the strategy carries all) -------
         for _ in range(n_b):
             sample_1, sample_2 = sampler.next_1d(hit.active), sampler.next_2d(hit.active)
-            if product_only is False:  # no allocation: not even a branch is traced
-                L += bsdf_sample_of_emitters(scene, hit, sample_1, sample_2, strategy_pdf, frac_e, frac_b) / n_b
+            if carries_all is False:  # no such lane: not even a branch is traced
+                L += bsdf_sample_of_emitters(scene, hit, sample_1, sample_2, strategy_pdf, frac_e, frac_b,
+                                             mitsuba_pdf) / n_b
                 continue
             L += dr.if_stmt(
-                args=(sample_1, sample_2), cond=product_only,
-                # A product sample whose share of the lane's samples is frac_b.
+                args=(sample_1, sample_2), cond=carries_all,
+                # A strategy sample whose share of the lane's samples is frac_b.
                 true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product, smooth,
                                                      mi.Bool(True), frac_b, frac_e) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
-                                                                frac_e, frac_b) / n_b)
+                                                                frac_e, frac_b, mitsuba_pdf) / n_b)
 
         sees_environment = not options.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []

@@ -5,6 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .chooser import StrategyChooser
 from .environment import ProductEnvironment, SceneCache
 from .estimators import mis_weight
 from .options import PathOptions, document_parameters
@@ -24,8 +25,11 @@ class SHPathIntegrator(mi.SamplingIntegrator):
 
     Mitsuba's :monosp:`path` with one change: at every vertex whose BSDF has a
     smooth lobe, next-event estimation towards the environment map draws its
-    direction from the product of the BSDF lobe proxy (spherical harmonics,
-    rotated per vertex) and the environment's luminance. It is combined with
+    direction with the strategy of the vertex's material (``strategy``): from the
+    product of the BSDF lobe proxy (spherical harmonics, rotated per vertex) and
+    the environment's luminance, or from the environment alone; with ``auto``
+    each material gets the one predicted to give the least error at equal time,
+    chosen before the first pass at the camera's first hits. It is combined with
     BSDF sampling by the power heuristic; the product pdf of each BSDF-sampled
     direction is evaluated at the vertex that sampled it and carried to the
     next one (one float of loop state). Other emitters keep Mitsuba's emitter
@@ -48,10 +52,18 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         super().__init__(props)
         self.options = options = PathOptions.from_properties(props)
         self.scenes = SceneCache(lambda scene: ProductEnvironment(scene, options))
+        # One environment sample and one BSDF sample per vertex.
+        self.chooser = StrategyChooser(1, 1)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        self.scenes.get(scene)  # build host-side state before tracing the pass
+        env = self.scenes.get(scene)  # build host-side state before tracing the pass
+        self.chooser.before_render(env, scene, sensor,
+                                   lambda pilot_spp: super(SHPathIntegrator, self).render(scene, sensor, seed, pilot_spp))
         return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    def choice(self, scene):
+        """The strategy chosen for each material of ``scene`` (see ``sh_direct``)."""
+        return self.scenes.get(scene).choice
 
     @dr.syntax
     def sample(self, scene, sampler, ray, medium=None, active=True):

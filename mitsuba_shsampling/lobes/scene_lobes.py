@@ -29,6 +29,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..scene_materials import registry_id
 from ..sh.basis import MAX_ORDER
 from ..sh.zonal import clamped_cosine_attenuation, phong_attenuation, zonal_to_sh
 from ..warp.proxy_lobe import ProxyLobe
@@ -87,12 +88,6 @@ def max_exponent_for_bands(n_bands: int, tol: float = BAND_ATTENUATION_TOL) -> f
         else:
             hi = mid
     return lo
-
-
-def registry_id(bsdf: mi.BSDF) -> int:
-    """Id under which Dr.Jit's registry knows ``bsdf``: the per-lane value of
-    ``dr.reinterpret_array(mi.UInt32, si.bsdf())`` on surfaces that use it."""
-    return int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])
 
 
 FRAME_WRAPPERS = ("BumpMap", "NormalMap")
@@ -162,6 +157,8 @@ class SceneLobes:
         #: frame-perturbing wrapper, or an unusable fit): its lanes sample the
         #: environment alone.
         self.has_unsupported_lobes = False
+        #: Registry id -> BSDF, for the BSDFs with a product lobe (one table row each).
+        self.bsdfs_with_lobes: dict[int, mi.BSDF] = {}
         for shape in scene.shapes():
             bsdf = shape.bsdf()
             if bsdf is None:
@@ -191,6 +188,7 @@ class SceneLobes:
                 row_of_id[key] = 0
                 continue
             self.fits[bsdf.id()] = params
+            self.bsdfs_with_lobes[key] = bsdf
             row_of_id[key] = len(rows)
             rows.append(params)
             needed_bands = max(needed_bands, self._bands_needed(params))
@@ -281,20 +279,6 @@ class SceneLobes:
         """
         w_d, w_g, s, valid = self._fitted(si, active)
         return w_d, w_g, dr.minimum(s, self.max_exponent), valid
-
-    def represents_exactly(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Bool:
-        """Per lane: the proxy's glossy lobe fits in the band count without
-        being widened (its exponent is at most :attr:`max_exponent`), or
-        carries under :data:`MIN_GLOSSY_FRACTION` of the energy. Where it does
-        not, the SH lobe is wider than the BSDF and BSDF sampling is needed
-        for the sharp part; where it does, the product alone follows the
-        integrand closely."""
-        w_d, w_g, exponent, valid = self._fitted(si, active)
-        return valid & ((exponent <= self.max_exponent) | self._glossy_is_minor(w_d, w_g))
-
-    @staticmethod
-    def _glossy_is_minor(w_d, w_g) -> mi.Bool:
-        return w_g <= MIN_GLOSSY_FRACTION * (w_d + w_g)
 
     def coefficients(self, si: mi.SurfaceInteraction3f,
                      grid_from_world: Callable[[mi.Vector3f], mi.Vector3f],

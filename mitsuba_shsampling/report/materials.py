@@ -31,14 +31,10 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from ..scene_materials import registry_id, scene_materials
 from .schema import MaterialEntry
 
 BACKGROUND = "background"
-
-
-def _plugin_name(bsdf: mi.BSDF) -> str:
-    text = str(bsdf)
-    return "Principled" if text.startswith("Principled") else text.split("[", 1)[0].strip()
 
 
 def material_map(scene: mi.Scene, sensor: mi.Sensor) -> tuple[np.ndarray, list[tuple[str, str]]]:
@@ -58,21 +54,11 @@ def material_map(scene: mi.Scene, sensor: mi.Sensor) -> tuple[np.ndarray, list[t
     hit_ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.int64)
     valid = np.array(si.is_valid())
 
-    # Registry id of each shape -> index of its BSDF instance (shared BSDFs share an index).
-    bsdfs: list[mi.BSDF] = []
-    users: list[list[str]] = []
-    shape_to_material: dict[int, int] = {}
-    for number, shape in enumerate(scene.shapes()):
-        bsdf = shape.bsdf()
-        index = next((i for i, b in enumerate(bsdfs) if b is bsdf), None)
-        if index is None:
-            index = len(bsdfs)
-            bsdfs.append(bsdf)
-            users.append([])
-        users[index].append(shape.id() or f"shape{number}")
-        registry = int(np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape)))[0])
-        shape_to_material[registry] = index
-    labels = [(bsdf.id() or "+".join(names), _plugin_name(bsdf)) for bsdf, names in zip(bsdfs, users)]
+    # Registry id of each shape -> index of its material (shared BSDFs share an index).
+    materials = scene_materials(scene)
+    shape_to_material = {registry_id(shape): index for index, m in enumerate(materials)
+                         for shape in scene.shapes() if shape.bsdf() is m.bsdf}
+    labels = [(m.name, m.plugin) for m in materials]
 
     lookup = np.vectorize(lambda r: shape_to_material.get(int(r), -1), otypes=[np.int64])
     ids = np.where(valid, lookup(hit_ids) if hit_ids.size else hit_ids, -1)

@@ -27,6 +27,7 @@ import numpy as np
 
 import mitsuba as mi
 
+from ..envmap.emitter import envmap_description
 from ..scenes import SceneError, scene_envmap
 from ..traversal import readable_parameters
 
@@ -92,14 +93,7 @@ def with_environment(scene: mi.Scene, filename: str | None = None,
     env = scene_envmap(scene)
     if env is None:
         raise SceneError("the scene has no envmap emitter to replace or compensate")
-    params = mi.traverse(env)
-    desc = {"type": "envmap", "to_world": _transform(params["to_world"]),
-            "scale": _scalar(params["scale"]), "mis_compensation": mis_compensation}
-    if filename is not None:
-        desc["filename"] = os.path.abspath(filename)
-    else:
-        # `data` carries one wrap-around halo column on each side (mitsuba.md).
-        desc["bitmap"] = mi.Bitmap(np.ascontiguousarray(np.array(params["data"])[:, 1:-1], dtype=np.float32))
+    desc = envmap_description(env, filename, mis_compensation)
     # Emitters keep their order (the new envmap takes the old one's place), so that a seed
     # draws the same emitter choices as in the original scene.
     objects = {"type": "scene"}

@@ -294,33 +294,3 @@ class ProductWarp:
         cell, _, prob, _ = walk_pdf(provider, provider.walk_depth, z, phi)
         leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.depth, z, phi)
         return prob * p_leaf / leaf.area
-
-
-class EnvironmentWarp:
-    """The environment alone: directions in proportion to the pyramid's luminance.
-
-    The product's defensive part on its own, for shading points where no lobe is
-    product-sampled (anisotropic, transmissive or frame-perturbing BSDFs): one
-    telescoped descent of the additive pyramid from its root, about half the work
-    per level of a product level (:func:`.hierarchy.descend_pyramid_sample`). With a
-    MIS-compensated pyramid it is the compensated environment strategy, which
-    needs a BSDF sample beside it to cover the directions it leaves out.
-
-    ``sample(u)`` returns (world direction, solid-angle pdf); ``pdf(d)`` evaluates
-    the same density for world directions.
-    """
-
-    def __init__(self, pyramid):
-        self.pyramid = pyramid
-        self.depth = check_depth(pyramid.depth)
-
-    def sample(self, u: mi.Point2f):
-        """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
-        leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, Cell(0, mi.UInt32(0), mi.UInt32(0)), self.depth, u)
-        return place_in_leaf(self.pyramid, leaf, t, p_leaf, mi.Bool(True), u)
-
-    def pdf(self, d: mi.Vector3f) -> mi.Float:
-        """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
-        z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
-        leaf, p_leaf = descend_pyramid_pdf(self.pyramid, Cell(0, mi.UInt32(0), mi.UInt32(0)), self.depth, z, phi)
-        return p_leaf / leaf.area

@@ -1,0 +1,410 @@
+"""Choosing each material's environment strategy before the first pass (``strategy`` ``auto``).
+
+What is minimised is the image's expected error at equal time: the per-pixel
+variance summed over the film, times the time of a pass,
+
+    J = (V_rest + sum_m V_m(s_m)) * (P_env + sum_m a_m * dP(s_m)),
+
+over one strategy s_m per material m (a BSDF instance with a product lobe),
+with
+
+- ``V_m(s)``: the variance that the environment estimator of strategy ``s``
+  adds to the film, summed over the shading points of material ``m``. It is
+  computed at the camera's first hits (:func:`camera_frames`, a stratified grid
+  over the film) from the estimator's second moment, by importance-sampled
+  quadrature over directions (:func:`frame_variances`): the integrand is the
+  BSDF value x radiance x *visibility* (a shadow ray per direction), so occluded
+  skies and windows count as they will in the render.
+- ``V_rest``: the same for the smooth materials without a choice (they run
+  :attr:`Strategy.ENVIRONMENT`);
+- ``P_env`` and ``dP(s)``: the pass time with every material on the
+  environment strategy, and the extra time per pixel of material ``m`` on
+  strategy ``s``. Both are measured in the scene itself by short pilot passes
+  of the integrator with every material forced to each strategy, interleaved
+  (:func:`measure_pass_costs`); the table of strategies is device data, so the
+  pilots and the render share one compiled kernel.
+- ``a_m``: the share of the film's pixels that material ``m`` covers.
+
+J is minimised by coordinate descent over the materials (a handful of
+strategies, a few sweeps). What is predicted is direct lighting at the
+camera's first hits; in a path tracer the deeper vertices share the choice.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import statistics
+import time
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .estimators import environment_ray_target, mis_weight
+from .strategy import Strategy
+
+FRAMES = 4096
+"""Camera shading points at most (a stratified grid over the film)."""
+
+DIRECTIONS = 64
+"""Quadrature directions per shading point."""
+
+PILOT_LANES = 2**17
+"""Camera samples per pilot pass (spp is rounded up so that the film gets at least this many)."""
+
+PILOT_REPEATS = 3
+"""Timed pilot passes per strategy (interleaved; the median counts)."""
+
+REQUIRED_GAIN = 1.05
+"""A product strategy must be predicted to beat the lean kernel by this factor at
+equal time: the pilots' pass times scatter by a few per cent, and the lean
+kernel is, per material, exactly one of Mitsuba's own strategies."""
+
+
+@dataclasses.dataclass
+class MaterialChoice:
+    """The choice for one material."""
+
+    name: str
+    """The BSDF's id in the scene."""
+    strategy: Strategy
+    share: float
+    """Share of the film's camera samples that see it."""
+    variance: dict
+    """Strategy -> predicted variance it adds to the film (luminance^2, summed over its pixels)."""
+    predicted_gain: float
+    """Predicted variance of the material's best environment strategy over that of the
+    chosen one, at equal samples (1 where an environment strategy is chosen)."""
+
+
+@dataclasses.dataclass
+class StrategyChoice:
+    """The outcome of :func:`choose_strategies`, for reports."""
+
+    materials: list
+    pass_time: dict
+    """Pilot -> pass time (s): each strategy with every material that can run it on it,
+    and :data:`LEAN`, the kernel without product code."""
+    predicted_gain: float
+    """Predicted equal-time efficiency of the choice over the lean kernel (every
+    material on its best environment strategy, no product code: Mitsuba's
+    ``direct`` with or without emitter samples only, per material): image
+    variance ratio x pass-time ratio; 1 when lean."""
+    lean: bool
+    """No material runs a product strategy, and the product's code is not traced."""
+    seconds: float
+    """Time the choice took (frames, quadrature, pilots), spent once per scene."""
+
+    def as_dict(self) -> dict:
+        return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
+                "pass_time_s": dict(self.pass_time),
+                "materials": [{"name": m.name, "strategy": m.strategy.label, "share": m.share,
+                               "predicted_gain": m.predicted_gain,
+                               "variance": {s.label: v for s, v in m.variance.items()}}
+                              for m in self.materials]}
+
+    def summary(self) -> str:
+        parts = [f"{m.name}: {m.strategy.label}" + (f" (variance /{m.predicted_gain:.2f})"
+                                                     if m.strategy.uses_product else "")
+                 for m in self.materials if m.share > 0]
+        head = ("no product strategy pays: environment strategies only, without product code"
+                if self.lean else f"predicted x{self.predicted_gain:.2f} at equal time over environment strategies only")
+        return f"{head}; " + ", ".join(parts)
+
+
+# ----------------------------------------------------------------- shading points
+
+def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
+    """The camera's first hits at a stratified grid of film positions (at most
+    ``count``, at most one per pixel): ``(si, bsdf, total)`` with only the hits on
+    smooth BSDFs kept, and ``total`` the number of film positions traced."""
+    size = sensor.film().crop_size()
+    width, height = int(size[0]), int(size[1])
+    aspect = width / height
+    nx = max(1, min(width, int(round(math.sqrt(count * aspect)))))
+    ny = max(1, min(height, int(round(count / nx))))
+    ix, iy = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
+    position = mi.Point2f(ix.ravel().astype(np.float32), iy.ravel().astype(np.float32))
+    ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    bsdf = si.bsdf(ray)
+    smooth = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    keep = mi.UInt32(np.flatnonzero(np.broadcast_to(smooth.numpy(), (nx * ny,))).astype(np.uint32))
+    return dr.gather(mi.SurfaceInteraction3f, si, keep), dr.gather(mi.BSDFPtr, bsdf, keep), nx * ny
+
+
+def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int, n_b: int,
+                    directions: int = DIRECTIONS, seed: int = 0) -> np.ndarray:
+    """Variance of the environment estimator at each shading point, per strategy.
+
+    Returns an array (points, 4), indexed by :class:`Strategy`: the variance
+    (luminance^2) of one lane's environment estimate with ``n_e`` strategy
+    samples and ``n_b`` BSDF samples (power heuristic on sample-count
+    fractions), or with ``n_e + n_b`` strategy samples for the strategies that
+    carry every sample. NaN where a strategy cannot be evaluated (no product lobe
+    or no product built; no uncompensated product). Visibility counts: the
+    integrand is BSDF x radiance x a shadow ray's verdict.
+
+    The integrals E[w^2 f^2 / p] and E[w f] are estimated with ``directions``
+    samples per point from an equal mixture of the BSDF's sampling, the two
+    environment strategies and the two products (so that the sun, the lobe and
+    the BSDF's own peak are all found), with the balance heuristic over it.
+    """
+    columns_out = len(Strategy)
+    points = dr.width(si)
+    if points == 0:
+        return np.zeros((0, columns_out))
+    lanes = points * directions
+    index = dr.arange(mi.UInt32, lanes)
+    frame = index // directions
+    component = index % 5
+    si = dr.gather(mi.SurfaceInteraction3f, si, frame)
+    bsdf = dr.gather(mi.BSDFPtr, bsdf, frame)
+    rng = mi.PCG32(lanes, seed)
+    u0, u = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
+
+    ctx = mi.BSDFContext()
+    product = env.warp is not None
+    plain = env.warp_plain is not None
+    if product:
+        coeffs, proxy, has_lobe = env.lobes.coefficients_and_proxy(si, env.pyramid.grid_from_world, True)
+    else:
+        coeffs, proxy, has_lobe = None, None, mi.Bool(False)
+
+    # One direction per lane, from the component its index selects. Lanes without
+    # a lobe draw their "product" components from the compensated environment.
+    bs, _ = bsdf.sample(ctx, si, u0, u, component == 0)
+    d_env, _ = env.env_directions.sample(u)
+    d_plain_env, _ = env.env_plain.sample(u)
+    d = dr.select(component == 0, si.to_world(bs.wo), dr.select(component == 4, d_plain_env, d_env))
+    if product:
+        d_product, _ = env.warp.sample(coeffs, u, proxy)
+        d = dr.select((component == 2) & has_lobe, d_product, d)
+    if plain:
+        d_plain, _ = env.warp_plain.sample(coeffs, u, proxy)
+        d = dr.select((component == 3) & has_lobe, d_plain, d)
+
+    wo = si.to_local(d)
+    value, p_bsdf = bsdf.eval_pdf(ctx, si, wo)
+    radiance = env.emitter.eval(environment_ray_target(d))
+    visible = ~env.scene.ray_test(si.spawn_ray(d))
+    f = dr.select(visible, mi.luminance(value) * mi.luminance(radiance), 0.0)
+    p_env = env.env_directions.pdf(d)
+    p_plain_env = env.env_plain.pdf(d)
+    p_product = dr.select(has_lobe, env.warp.pdf(coeffs, d, proxy), 0.0) if product else mi.Float(0.0)
+    p_plain = dr.select(has_lobe, env.warp_plain.pdf(coeffs, d, proxy), 0.0) if plain else mi.Float(0.0)
+    mixture = 0.2 * (p_bsdf + p_env + p_plain_env + dr.select(has_lobe, p_product, p_env)
+                     + dr.select(has_lobe & plain, p_plain, p_env))
+    dr.eval(f, mixture, p_bsdf, p_env, p_plain_env, p_product, p_plain, has_lobe)
+
+    # The moments, per shading point, in float64 on the host. Each strategy's variance
+    # is estimated as the mean of (Y - I)^2 p / q, Y = w f / p its sample's value and
+    # I its mean: centred, so that an estimator with a large mean and a small variance
+    # (a sun that the strategy follows closely) does not lose it to cancellation in
+    # E[Y^2] - I^2.
+    def per_point(x):
+        return np.broadcast_to(np.asarray(x.numpy(), dtype=np.float64), (lanes,)).reshape(points, directions)
+
+    f, q = per_point(f), per_point(mixture)
+    p_bsdf, p_env, p_plain_env = per_point(p_bsdf), per_point(p_env), per_point(p_plain_env)
+    p_product, p_plain = per_point(p_product), per_point(p_plain)
+    lobed = per_point(mi.Float(has_lobe))[:, 0] > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(q > 0, f, 0.0)
+        inv_q = np.where(q > 0, 1.0 / q, 0.0)
+
+        def one_sample_variance(weighted, pdf):
+            """Variance of weighted(d) / pdf(d), d ~ pdf: (Y - I)^2 over the pdf's support."""
+            mean = np.mean(weighted * inv_q, axis=1, keepdims=True)
+            value = np.where(pdf > 0, weighted / pdf, 0.0)
+            return np.mean(np.where(pdf > 0, (value - mean) ** 2 * pdf * inv_q, 0.0), axis=1)
+
+        def mis_variance(pdf):
+            frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
+            a2, b2 = (frac_e * pdf) ** 2, (frac_b * p_bsdf) ** 2
+            w = np.where(pdf > 0, a2 / (a2 + b2), 0.0) if n_b else np.where(pdf > 0, 1.0, 0.0)
+            w_b = np.where(p_bsdf > 0, 1.0 - w, 0.0)
+            var = one_sample_variance(w * f, pdf) / n_e if n_e else 0.0
+            return var + (one_sample_variance(w_b * f, p_bsdf) / n_b if n_b else 0.0)
+
+        def alone_variance(pdf):
+            return one_sample_variance(f, pdf) / (n_e + n_b)
+
+        result = np.full((points, len(Strategy)), np.nan)
+        result[:, Strategy.ENVIRONMENT] = mis_variance(p_env)
+        result[:, Strategy.ENVIRONMENT_ONLY] = alone_variance(p_plain_env)
+        if product:
+            result[lobed, Strategy.PRODUCT] = mis_variance(p_product)[lobed]
+        if plain:
+            result[lobed, Strategy.PRODUCT_ONLY] = alone_variance(p_plain)[lobed]
+    return result
+
+
+# ----------------------------------------------------------------- pass costs
+
+LEAN = "lean"
+"""Pilot key of the kernel without product code (:meth:`ProductEnvironment.drop_product`)."""
+
+
+def measure_pass_costs(env, candidates: dict, render_pass: Callable[[], None],
+                       repeats: int = PILOT_REPEATS) -> dict:
+    """Pass time (s) per candidate: ``candidates`` maps a name to the assignment
+    (registry id -> strategy) it is timed with, or to :data:`LEAN` for the kernel
+    without product code; ``render_pass()`` renders and waits. One untimed
+    warm-up pass per kernel, then ``repeats`` rounds, candidates interleaved; the
+    median per candidate. ``env`` is left as it was found."""
+    table = env.strategies
+    saved = {key: table.of(key) for key in table.ids}
+    warps = env.warp, env.warp_plain
+
+    def configure(assignment):
+        env.warp, env.warp_plain = warps
+        if assignment == LEAN:
+            env.drop_product()
+        else:
+            table.assign(assignment)
+
+    times = {name: [] for name in candidates}
+    try:
+        for assignment in candidates.values():  # compiles each kernel once (the render reuses it)
+            configure(assignment)
+            render_pass()
+        for _ in range(repeats):
+            for name, assignment in candidates.items():
+                configure(assignment)
+                start = time.perf_counter()
+                render_pass()
+                times[name].append(time.perf_counter() - start)
+    finally:
+        env.warp, env.warp_plain = warps
+        table.assign(saved)
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
+# ----------------------------------------------------------------- the choice
+
+def minimise_error_at_equal_time(variance: dict, rest: float, share: dict, base_time: float,
+                                 extra_time: dict, sweeps: int = 8) -> dict:
+    """Strategy per material minimising (rest + sum V) x (base + sum share x extra).
+
+    ``variance[m][s]``: material m's variance on strategy s (NaN or missing: not
+    possible); ``share[m]``: its share of the film; ``extra_time[s]``: extra pass
+    time per unit share on strategy s (0 for the environment strategy).
+    Coordinate descent from every material on the environment strategy."""
+    choice = {m: Strategy.ENVIRONMENT for m in variance}
+
+    def cost(choice):
+        v = rest + sum(variance[m][s] for m, s in choice.items())
+        t = base_time + sum(share[m] * extra_time[s] for m, s in choice.items())
+        return v * t
+
+    for _ in range(sweeps):
+        changed = False
+        for m in variance:
+            options = [s for s in variance[m] if s in extra_time and np.isfinite(variance[m][s])]
+            best = min(options, key=lambda s: (cost({**choice, m: s}), s != choice[m]))
+            if best != choice[m]:
+                choice[m], changed = best, True
+        if not changed:
+            break
+    return choice, cost(choice)
+
+
+def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: Callable[[int], None],
+                      pass_time: dict | None = None) -> StrategyChoice:
+    """Choose and assign (``env.strategies``) a strategy for every material; when no
+    product strategy pays for the time its code costs every lane, drop the
+    product altogether (:meth:`ProductEnvironment.drop_product`).
+
+    ``render_pass(spp)`` renders one pass of the integrator as it is configured;
+    ``pass_time`` (pilot name -> seconds, as :func:`measure_pass_costs` returns)
+    skips the pilots when the costs are known. Without a product to choose, no
+    pilot runs: the environment strategies cost the same.
+    """
+    start = time.perf_counter()
+    table = env.strategies
+    si, bsdf, total = camera_frames(env.scene, sensor)
+    variances = frame_variances(env, si, bsdf, n_e, n_b)
+    keys = np.broadcast_to(dr.reinterpret_array(mi.UInt32, bsdf).numpy(), (dr.width(si),)) \
+        if dr.width(si) else np.zeros(0, dtype=np.uint32)
+
+    materials = list(table.ids)
+    allowed = {key: env.allowed(key) for key in materials}
+    variance, share = {}, {}
+    for key in materials:
+        rows = variances[keys == key]
+        share[key] = len(rows) / total
+        variance[key] = {s: (float(np.sum(rows[:, s])) / total if len(rows) else 0.0) for s in allowed[key]}
+    rest_rows = variances[~np.isin(keys, materials)]
+    rest = float(np.sum(rest_rows[:, Strategy.ENVIRONMENT])) / total if len(rest_rows) else 0.0
+
+    # The lean kernel: the environment strategies only, which cost the same.
+    cheap = (Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY)
+    lean_choice = {k: min((s for s in allowed[k] if s in cheap), key=lambda s: (variance[k][s], s))
+                   for k in materials}
+    v_lean = rest + sum(variance[k][s] for k, s in lean_choice.items())
+    product_possible = any(s.uses_product for k in materials for s in allowed[k])
+
+    choice, lean, gain = lean_choice, True, 1.0
+    if product_possible:
+        if pass_time is None:
+            film = sensor.film().crop_size()
+            spp = max(1, math.ceil(PILOT_LANES / (int(film[0]) * int(film[1]))))
+            candidates = {LEAN: LEAN, Strategy.ENVIRONMENT.label: {k: Strategy.ENVIRONMENT for k in materials}}
+            for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
+                if any(strategy in allowed[k] for k in materials):
+                    candidates[strategy.label] = {k: strategy if strategy in allowed[k] else Strategy.ENVIRONMENT
+                                                  for k in materials}
+            pass_time = measure_pass_costs(env, candidates, lambda: render_pass(spp))
+        base = pass_time[Strategy.ENVIRONMENT.label]
+        extra = {s: 0.0 for s in cheap}
+        for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
+            if strategy.label in pass_time:
+                switched = sum(share[k] for k in materials if strategy in allowed[k])
+                extra[strategy] = max(pass_time[strategy.label] - base, 0.0) / switched if switched > 0 else 0.0
+        # Materials no camera ray sees give no evidence: they keep their lean choice.
+        seen = {k: v for k, v in variance.items() if share[k] > 0}
+        full_choice, error_full = minimise_error_at_equal_time(seen, rest, share, base, extra)
+        error_lean = v_lean * pass_time[LEAN]
+        if error_full * REQUIRED_GAIN < error_lean and any(s.uses_product for s in full_choice.values()):
+            choice, lean, gain = {**lean_choice, **full_choice}, False, error_lean / error_full
+    table.assign(choice)
+    if lean and env.warp is not None:
+        env.drop_product()
+
+    report = []
+    for key in materials:
+        s, v = choice[key], variance[key]
+        reference = v[lean_choice[key]]
+        report.append(MaterialChoice(env.material_name(key), s, share[key], dict(v),
+                                     reference / v[s] if v[s] > 0 else 1.0))
+    return StrategyChoice(report, dict(pass_time or {}), gain, lean, time.perf_counter() - start)
+
+
+class StrategyChooser:
+    """An integrator's chooser: runs :func:`choose_strategies` before the first pass of
+    each scene state whose ``strategy`` is ``auto``. The pilot pass times are
+    measured once per scene and reused when only its parameters change (an
+    optimisation loop rebuilds the state at every step)."""
+
+    def __init__(self, emitter_samples: int, bsdf_samples: int):
+        self.n_e, self.n_b = emitter_samples, bsdf_samples
+        self._scene, self._pass_time = None, None
+
+    def before_render(self, env, scene: mi.Scene, sensor, render: Callable) -> None:
+        """Choose for ``env`` if it awaits a choice. ``render(spp)`` returns one
+        pass's image with the integrator as it is (the pilots)."""
+        if not env.awaits_choice:
+            return
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+
+        def render_pass(spp: int) -> None:
+            dr.eval(render(spp))
+            dr.sync_thread()
+
+        known = self._pass_time if self._scene is scene else None
+        env.choice = choose_strategies(env, sensor, self.n_e, self.n_b, render_pass, known)
+        self._scene, self._pass_time = scene, env.choice.pass_time

@@ -1,0 +1,114 @@
+"""The environment strategies a shading point can use, and which one each material runs.
+
+Every smooth lane samples the environment through this package with one of
+three strategies (:class:`Strategy`). Which one is a property of the lane's BSDF
+instance (its *material*): a :class:`StrategyTable` maps each BSDF's registry
+id to a strategy, and the integrators gather it per lane. Lanes of one material
+are coherent, so the symbolic branches that run a strategy's walks agree within
+SIMD packets, and a packet with no lane of a strategy skips its walks.
+
+The table is device data, not a constant of the traced kernel: assigning other
+strategies (the chooser's pilot passes, :mod:`.chooser`) reuses the compiled
+kernel.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+class Strategy(enum.IntEnum):
+    """How a lane samples the environment (the value is the per-lane code)."""
+
+    ENVIRONMENT = 0
+    """The environment alone (MIS-compensated when ``mis_compensation``), one
+    sample per ``emitter_samples``, power-heuristic weighted against the BSDF
+    samples: the strategy of Mitsuba's ``direct`` on a compensated map, on this
+    package's pyramid. No lobe is looked up, no product walk runs."""
+    PRODUCT = 1
+    """The product of the lane's SH lobe proxy and the (compensated)
+    environment, weighted against the BSDF samples by the power heuristic."""
+    PRODUCT_ONLY = 2
+    """The product with the uncompensated environment carries every sample of
+    the lane (``emitter_samples + bsdf_samples``, equally weighted), and no BSDF
+    sample runs. Only for BSDFs without a Dirac part, and only in ``sh_direct``
+    (a path's BSDF sample always runs, to continue it)."""
+    ENVIRONMENT_ONLY = 3
+    """The uncompensated environment alone carries every sample of the lane, and
+    no BSDF sample runs: Mitsuba's ``direct`` with emitter samples only. Same
+    conditions as :attr:`PRODUCT_ONLY`; no product code."""
+
+    @property
+    def label(self) -> str:
+        """The name used by the ``strategy`` parameter and in reports."""
+        return self.name.lower()
+
+    @property
+    def uses_product(self) -> bool:
+        return self in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY)
+
+    @property
+    def carries_all(self) -> bool:
+        """Every sample of the lane is this strategy's (no BSDF sample runs)."""
+        return self in (Strategy.PRODUCT_ONLY, Strategy.ENVIRONMENT_ONLY)
+
+    @property
+    def fallback(self) -> Strategy:
+        """What a material that cannot run this strategy runs instead."""
+        return {Strategy.PRODUCT_ONLY: Strategy.PRODUCT, Strategy.PRODUCT: Strategy.ENVIRONMENT,
+                Strategy.ENVIRONMENT_ONLY: Strategy.ENVIRONMENT}.get(self, Strategy.ENVIRONMENT)
+
+
+AUTO = "auto"
+"""The ``strategy`` parameter's value that lets :mod:`.chooser` decide per material."""
+
+STRATEGY_NAMES = tuple(s.label for s in Strategy)
+
+
+def strategy_named(name: str) -> Strategy:
+    """The :class:`Strategy` of a ``strategy`` parameter value (not ``auto``)."""
+    return Strategy[name.upper()]
+
+
+class StrategyTable:
+    """Strategy per material: BSDF registry id -> :class:`Strategy` code.
+
+    ``initial`` maps the registry ids of the scene's materials that sample the
+    environment (smooth BSDFs) to their first strategy; every other id, and ids
+    outside the table, read :attr:`Strategy.ENVIRONMENT`.
+    """
+
+    def __init__(self, initial: dict[int, Strategy]):
+        self.ids = list(initial)
+        self._size = max(self.ids, default=0) + 1
+        self._codes = np.full(self._size, int(Strategy.ENVIRONMENT), dtype=np.uint32)
+        self.assign(initial)
+
+    def _upload(self) -> None:
+        # At least two entries, so that the table is always an array in memory and
+        # never a literal of the kernel (a literal would make each assignment a new kernel).
+        codes = self._codes if self._size > 1 else np.append(self._codes, np.uint32(0))
+        self._device = mi.UInt32(codes)
+        dr.make_opaque(self._device)
+
+    def assign(self, choice: dict[int, Strategy]) -> None:
+        """Set the strategy of the materials in ``choice`` (registry id -> strategy)."""
+        for key, strategy in choice.items():
+            if key not in self.ids:
+                raise KeyError(f"BSDF registry id {key} is not a material of the table")
+            self._codes[key] = int(strategy)
+        self._upload()
+
+    def of(self, key: int) -> Strategy:
+        """The strategy of the material with registry id ``key``."""
+        return Strategy(int(self._codes[key])) if key < self._size else Strategy.ENVIRONMENT
+
+    def lane(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.UInt32:
+        """Per lane: the strategy code of the BSDF at ``si`` (ENVIRONMENT where not ``active``)."""
+        bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
+        active = mi.Bool(active) & (bsdf_id < self._size)
+        return dr.gather(mi.UInt32, self._device, bsdf_id, active)

@@ -1,0 +1,196 @@
+"""Specification of the per-material choice of the environment strategy (``strategy`` ``auto``).
+
+The chooser predicts each strategy's variance at the camera's first hits by
+quadrature (visibility included) and weighs it against pilot pass times. On
+synthetic cases the answer is known; the predictions must agree with the
+variance measured in renders; a scene that mixes strategies stays unbiased;
+and where no product strategy pays, no product code is traced.
+"""
+
+import warnings
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong, window_latlong  # noqa: E402
+from mitsuba_shsampling.integrators import register  # noqa: E402
+from mitsuba_shsampling.integrators.chooser import (LEAN, camera_frames, choose_strategies,  # noqa: E402
+                                                    frame_variances, minimise_error_at_equal_time)
+from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
+from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
+from mitsuba_shsampling.integrators.strategy import Strategy  # noqa: E402
+
+from test_integrators import MATERIALS, assert_unbiased, make_scene  # noqa: E402
+
+LUMINANCE = [0.2126, 0.7152, 0.0722]
+E, EO, P, PO = Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY, Strategy.PRODUCT, Strategy.PRODUCT_ONLY
+
+#: Pilot pass times of a scene filled by one material: the product's code costs every
+#: lane 7 %, its walks another 20-30 % (the proportions measured on the material studio).
+PASS_TIME = {LEAN: 1.0, E.label: 1.07, P.label: 1.3, PO.label: 1.35}
+
+#: Light from above the floor (envmap +Y is the scene's +Z here: see ``floor_scene``).
+SUN = envmap_emitter(sun_sky_latlong(256, 512, sun_direction=(0.4, 0.5, 0.75), sun_radius_deg=0.5,
+                                     sun_radiance=1e5))
+WINDOW = envmap_emitter(window_latlong(128, 256, direction=(0.3, 0.5, 0.8)))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def registered():
+    register()
+
+
+def floor_scene(bsdf: dict, emitter) -> mi.Scene:
+    """A floor filling the view from above at 45 degrees, lit by ``emitter`` alone (no
+    edge in the frame: pixels across an edge add an antialiasing variance that every
+    strategy shares and the prediction leaves out)."""
+    return mi.load_dict({
+        "type": "scene", "env": emitter,
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, -3, 3], target=[0, 0, 0], up=[0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent"}},
+        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf}})
+
+
+def chosen(bsdf: dict, emitter) -> tuple[Strategy, dict]:
+    scene = floor_scene(bsdf, emitter)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    choice = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pass_time=PASS_TIME)
+    (material,) = choice.materials
+    return material.strategy, material.variance
+
+
+# ------------------------------------------------------------ known answers
+
+def test_a_diffuse_lobe_under_a_tiny_sun_keeps_mitsubas_compensated_environment_sampling():
+    """The compensated map puts nearly every sample on the sun, which carries nearly all
+    the light; the cosine-sampled BSDF sample covers the sky. The product adds nothing a
+    diffuse lobe could, and costs time."""
+    strategy, variance = chosen({"type": "diffuse"}, SUN)
+    assert strategy == E
+    assert variance[P] > 0.9 * variance[E]
+
+
+def test_a_glossy_lobe_under_a_broad_bright_window_gets_the_product():
+    strategy, variance = chosen({"type": "roughconductor", "distribution": "ggx", "alpha": 0.1}, WINDOW)
+    assert strategy == P
+    assert variance[P] < 0.6 * variance[E]
+
+
+def test_a_diffuse_lobe_under_a_broad_window_gives_every_sample_to_the_product():
+    """Cosine x window is what the product follows; a BSDF sample would waste half the budget."""
+    strategy, variance = chosen({"type": "diffuse"}, WINDOW)
+    assert strategy == PO
+    assert variance[PO] < 0.5 * min(variance[E], variance[P])
+
+
+def test_a_dirac_part_rules_out_the_strategies_without_a_bsdf_sample():
+    _, variance = chosen({"type": "plastic"}, WINDOW)
+    assert set(variance) == {E, P}
+
+
+def test_the_coordinate_descent_pays_for_time_only_where_the_variance_drops_enough():
+    variance = {"big_glossy": {E: 10.0, P: 3.0}, "small_diffuse": {E: 1.0, P: 0.97}}
+    share = {"big_glossy": 0.5, "small_diffuse": 0.5}
+    choice, error = minimise_error_at_equal_time(variance, 0.0, share, base_time=1.0, extra_time={E: 0.0, P: 0.4})
+    assert choice == {"big_glossy": P, "small_diffuse": E}
+    assert error == pytest.approx((3.0 + 1.0) * (1.0 + 0.2))
+
+
+def test_materials_where_nothing_pays_leave_the_product_out_of_the_kernel():
+    scene = floor_scene({"type": "diffuse"}, SUN)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    choice = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pass_time=PASS_TIME)
+    assert choice.lean and env.warp is None and env.warp_plain is None
+    assert choice.predicted_gain == 1.0
+
+
+# ------------------------------------------------------------ predictions against renders
+
+@pytest.mark.parametrize("case", ["diffuse_sun", "glossy_window", "diffuse_window"])
+def test_predicted_variance_ratios_match_the_rendered_ones(case):
+    """Per strategy, the variance over the environment strategy's: the prediction
+    (quadrature at the camera's first hits) against the per-pixel variance of 32
+    renders, within a factor 1.5. Both are estimates of second moments, whose own
+    spread under a 1e5 sun is tens of per cent; the choice needs the ordering."""
+    bsdf, emitter = {"diffuse_sun": ({"type": "diffuse"}, SUN),
+                     "glossy_window": ({"type": "roughconductor", "alpha": 0.1}, WINDOW),
+                     "diffuse_window": ({"type": "diffuse"}, WINDOW)}[case]
+    scene = floor_scene(bsdf, emitter)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    si, bsdf_ptr, _ = camera_frames(scene, scene.sensors()[0])
+    predicted = np.nanmean(frame_variances(env, si, bsdf_ptr, 1, 1, directions=1024), axis=0)
+
+    def rendered(strategy):
+        integrator = mi.load_dict({"type": "sh_direct", "strategy": strategy.label})
+        images = np.stack([np.tensordot(np.array(mi.render(scene, integrator=integrator, spp=16, seed=k)),
+                                        LUMINANCE, axes=([2], [0])) for k in range(32)])
+        return images.var(axis=0, ddof=1).mean()
+
+    measured_env = rendered(E)
+    for strategy in (P, PO):
+        measured, expected = rendered(strategy) / measured_env, predicted[strategy] / predicted[E]
+        assert abs(np.log(measured / expected)) < np.log(1.5), (strategy.label, measured, expected)
+
+
+# ------------------------------------------------------------ end to end
+
+def test_a_scene_whose_materials_run_different_strategies_is_unbiased():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "roughplastic", "blend")},
+                           area_light=True)
+        sh = mi.load_dict({"type": "sh_direct", "max_bands": 5, "strategy": "product"})
+        env = sh.scenes.get(scene)
+    keys = env.strategies.ids
+    mix = [E, EO, P, PO]
+    env.strategies.assign({key: next(s for s in mix[i % 4:] + mix if s in env.allowed(key))
+                           for i, key in enumerate(keys)})
+    assert len({env.strategies.of(k) for k in keys}) >= 3
+    assert_unbiased(scene, sh, mi.load_dict({"type": "path", "max_depth": 2}))
+
+
+def test_auto_chooses_before_the_first_pass_and_reports_every_material():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})
+    sh = mi.load_dict({"type": "sh_direct", "max_bands": 5})
+    assert sh.choice(scene) is None
+    image = np.array(mi.render(scene, integrator=sh, spp=4))
+    assert np.all(np.isfinite(image))
+    choice = sh.choice(scene)
+    names = {m.name for m in choice.materials}
+    assert {"ggx", "diffuse", "plane"} <= names
+    assert set(choice.pass_time) >= {LEAN, E.label, P.label}
+    assert "at equal time" in choice.summary() or "no product strategy pays" in choice.summary()
+
+
+def test_sh_path_unbiased_with_its_automatic_choice():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = make_scene(rotated=True, materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "blend")})
+    assert_unbiased(scene, mi.load_dict({"type": "sh_path", "max_depth": 3, "max_bands": 5}),
+                    mi.load_dict({"type": "path", "max_depth": 3}))
+
+
+# ------------------------------------------------------------ the parameter
+
+@pytest.mark.parametrize("value", ["auto", "environment", "environment_only", "product", "product_only"])
+def test_sh_direct_accepts_auto_and_every_strategy(value):
+    assert DirectOptions(strategy=value).strategy == value
+
+
+@pytest.mark.parametrize("value", ["Product", "mis", "", 1])
+def test_other_strategy_values_are_refused_with_the_list_of_valid_ones(value):
+    with pytest.raises(OptionError, match="strategy"):
+        DirectOptions(strategy=value)
+
+
+@pytest.mark.parametrize("value", ["product_only", "environment_only"])
+def test_sh_path_refuses_strategies_that_skip_the_bsdf_sample_it_continues_with(value):
+    with pytest.raises(OptionError, match="'strategy' must be one of 'auto', 'environment', 'product'"):
+        PathOptions(strategy=value)
