@@ -132,6 +132,7 @@ def _fmt(value, spec: str) -> str:
 
 
 def _print_summary(report: Report) -> None:
+    from .integrators.chooser import summary_of as strategy_summary
     """The verdict, then one line per method and comparison (n/a: see the report's notes)."""
     for scene in report.scenes:
         for note in scene.notes:
@@ -149,6 +150,9 @@ def _print_summary(report: Report) -> None:
                           f"{e.tail.fireflies:>10}{_fmt(e.bias.p_value, '9.2g')}"
                           f"{'  BIAS?' if e.bias.flagged else ''}"
                           f"{'  TAIL' if e.tail_worse_than_baseline else ''}")
+            for name, entry in run.methods.items():
+                if entry.strategy_choice:
+                    print(f"  {name} strategy (auto): {strategy_summary(entry.strategy_choice)}")
             for family, rows in (run.materials or {}).items():
                 project = list(rows[0].error_ratio) if rows else []
                 print(f"  per material ({family}): pixels, squared error / best Mitsuba there at equal samples and "

@@ -106,12 +106,17 @@ class StrategyChoice:
                               for m in self.materials]}
 
     def summary(self) -> str:
-        parts = [f"{m.name}: {m.strategy.label}" + (f" (variance /{m.predicted_gain:.2f})"
-                                                     if m.strategy.uses_product else "")
-                 for m in self.materials if m.share > 0]
-        head = ("no product strategy pays: environment strategies only, without product code"
-                if self.lean else f"predicted x{self.predicted_gain:.2f} at equal time over environment strategies only")
-        return f"{head}; " + ", ".join(parts)
+        return summary_of(self.as_dict())
+
+
+def summary_of(choice: dict) -> str:
+    """One line from :meth:`StrategyChoice.as_dict` (also as a report stores it)."""
+    parts = [f"{m['name']}: {m['strategy']}" + (f" (variance /{m['predicted_gain']:.2f})"
+                                                if m["strategy"].startswith("product") else "")
+             for m in choice["materials"] if m["share"] > 0]
+    head = ("no product strategy pays: environment strategies only, without product code" if choice["lean"]
+            else f"predicted x{choice['predicted_gain']:.2f} at equal time over environment strategies only")
+    return f"{head}; " + ", ".join(parts)
 
 
 # ----------------------------------------------------------------- shading points

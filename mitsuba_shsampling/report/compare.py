@@ -161,6 +161,13 @@ def error_maps(methods: list[Method], equal_spp: dict[str, PassSet],
                           for m in methods}}
 
 
+def strategy_choice(renderer: MethodRenderer) -> dict | None:
+    """What the renderer's integrator chose per material (``strategy`` ``auto``), as a dict."""
+    choice = getattr(renderer.integrator, "choice", None)
+    made = choice(renderer.scene) if callable(choice) else None
+    return made.as_dict() if made is not None else None
+
+
 def material_breakdown(renderers: dict[str, MethodRenderer], methods: list[Method],
                        equal_spp: dict[str, PassSet], equal_time: dict[str, PassSet],
                        refs: dict[str, Reference]) -> dict[str, list[MaterialEntry]]:
@@ -176,6 +183,13 @@ def material_breakdown(renderers: dict[str, MethodRenderer], methods: list[Metho
             ids, labels, {n: equal_spp[n].images for n in names},
             {n: equal_time[n].images for n in names if n in equal_time}, refs[family].image,
             [n for n in names if n in PROJECT_METHODS], [n for n in names if n in MITSUBA_METHODS])
+        for n in names:
+            choice = strategy_choice(renderers[n])
+            chosen = {m["name"]: m for m in choice["materials"]} if choice else {}
+            for row in out[family]:
+                if row.name in chosen:
+                    row.strategy[n] = {"strategy": chosen[row.name]["strategy"],
+                                       "predicted_gain": chosen[row.name]["predicted_gain"]}
     return out
 
 
@@ -489,6 +503,8 @@ class SceneComparison:
                 results[m.name].convergence = [point for point, _ in sweep[m.name]]
 
         compare_with_baselines(results)
+        for m in methods:
+            results[m.name].strategy_choice = strategy_choice(renderers[m.name])
         # What actually rendered, read back from the sensor the passes used.
         sensor = next(iter(renderers.values())).sensor if renderers else None
         run = RunResult(sampler=sampler, methods=results, maps=ErrorMaps(files={}, scale={}),

@@ -217,8 +217,11 @@ def _materials_table(rows: list[MaterialEntry]) -> str:
     if not rows:
         return ""
     project = list(rows[0].error_ratio)
+    chose = [n for n in project if any(n in row.strategy for row in rows)]
     head = "".join(f"<th>{_e(n)}: error / best Mitsuba, equal samples</th><th>{_e(n)}: equal time</th>"
-                   f"<th>{_e(n)}: share of its error</th>" for n in project)
+                   f"<th>{_e(n)}: share of its error</th>"
+                   + (f"<th>{_e(n)}: strategy (predicted variance gain)</th>" if n in chose else "")
+                   for n in project)
     out = [f"<table><tr><th>material</th><th>plugin</th><th>pixels</th><th>best Mitsuba strategy there "
            f"(equal samples / equal time)</th><th>its share of its error</th>{head}</tr>"]
     for row in rows:
@@ -230,6 +233,10 @@ def _materials_table(rows: list[MaterialEntry]) -> str:
                 style = ' class="bad"' if ratio is not None and ratio > 1 else ""
                 cells.append(f"<td{style}>{_num(ratio, 3)}</td>")
             cells.append(f"<td>{_num(row.error_share.get(n), 2)}</td>")
+            if n in chose:
+                picked = row.strategy.get(n)
+                cells.append(f'<td class="name">{_e(picked["strategy"])} (x{_num(picked["predicted_gain"], 2)})</td>'
+                             if picked else "<td>-</td>")
         out.append(f'<tr><td class="name">{_e(row.name)}</td><td class="name">{_e(row.plugin)}</td>'
                    f'<td>{100 * row.pixel_share:.1f} %</td>'
                    f'<td class="name">{_e(best.get("equal_spp"))} / {_e(best.get("equal_time"))}</td>'

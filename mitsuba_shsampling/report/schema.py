@@ -112,6 +112,9 @@ class MethodResult:
     :param compile_time_s: the first render's time over a warm pass's (s).
     :param equal_time: None until the equal-time phase measured it.
     :param oracle: a reference row (:attr:`.methods.Method.oracle`), not a contender.
+    :param strategy_choice: what ``strategy`` ``auto`` chose before the first pass
+        (:meth:`~mitsuba_shsampling.integrators.chooser.StrategyChoice.as_dict`), for the
+        project's integrators; None otherwise.
     """
 
     label: str
@@ -124,6 +127,7 @@ class MethodResult:
     equal_time: PassResult | None = None
     convergence: list[ConvergencePoint] = dataclasses.field(default_factory=list)
     oracle: bool = False
+    strategy_choice: dict | None = None
 
 
 # One run (scene x sampler) and one scene --------------------------------------------------------
@@ -139,6 +143,8 @@ class MaterialEntry:
         squared error summed over these pixels, over the best Mitsuba strategy's.
     :param best_mitsuba: {"equal_spp": name, "equal_time": name} of that strategy.
     :param error_share: method -> share of the method's equal-sample image error on these pixels.
+    :param strategy: method -> {"strategy": name, "predicted_gain": variance of the material's
+        best environment strategy over the chosen one's}, for methods that chose per material.
     """
 
     name: str
@@ -147,6 +153,7 @@ class MaterialEntry:
     error_ratio: dict[str, dict[str, float | None]]
     best_mitsuba: dict[str, str | None]
     error_share: dict[str, float | None]
+    strategy: dict[str, dict] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass
