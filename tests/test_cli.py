@@ -54,6 +54,20 @@ def test_report_breaks_the_error_down_per_material(tiny_report):
         assert "Per material" in f.read()
 
 
+def test_report_names_each_materials_strategy_and_its_predicted_gain(tiny_report):
+    out, report = tiny_report
+    run = report["scenes"][0]["runs"][0]
+    choice = run["methods"]["sh_direct"]["strategy_choice"]
+    assert choice is not None and choice["predicted_gain"] >= 1.0
+    assert run["methods"]["direct"]["strategy_choice"] is None
+    glossy = next(row for row in run["materials"]["direct"] if row["plugin"] == "RoughConductor")
+    assert glossy["strategy"]["sh_direct"]["strategy"] in ("environment", "environment_only", "product",
+                                                           "product_only")
+    assert glossy["strategy"]["sh_direct"]["predicted_gain"] > 0
+    with open(out / "index.html") as f:
+        assert "strategy (predicted variance gain)" in f.read()
+
+
 def test_report_json_has_every_available_method_with_finite_metrics(tiny_report):
     _, report = tiny_report
     ggx = report["scenes"][0]

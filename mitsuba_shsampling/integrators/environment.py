@@ -32,7 +32,7 @@ from ..scene_materials import registry_id, scene_materials
 from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
-from .estimators import environment_ray_target, is_emitter, mis_weight, mitsuba_emitter_sample
+from .estimators import environment_sample, is_emitter, mis_weight, mitsuba_emitter_sample
 from .options import ProductOptions
 from .strategy import AUTO, Strategy, StrategyTable, strategy_named
 
@@ -263,12 +263,9 @@ class ProductEnvironment:
         d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
                               true_fn=lambda c, v: self.sample_environment(c, v, use_product, carries_all),
                               false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
-        act = smooth & (pdf_e > 0)
-        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
-        act &= ~scene.ray_test(si.spawn_ray(d), act)
-        Le = self.emitter.eval(environment_ray_target(d), act)
-        weight = dr.select(carries_all, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b))
-        return dr.select(act, bsdf_val * Le * (weight / pdf_e), 0.0)
+        return environment_sample(
+            scene, si, bsdf, ctx, d, pdf_e, smooth,
+            lambda bsdf_pdf: dr.select(carries_all, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)))
 
     def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False):
         """One sample of Mitsuba's emitter sampling, without the environment's

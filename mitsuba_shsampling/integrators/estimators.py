@@ -61,6 +61,18 @@ def first_hit(scene: mi.Scene, ray, active, hide_emitters: bool) -> FirstHit:
     return FirstHit(emitted, si, bsdf, mi.BSDFContext(), active, smooth)
 
 
+def environment_sample(scene, si, bsdf, ctx, d: mi.Vector3f, pdf: mi.Float, active, weight) -> mi.Spectrum:
+    """The value of one environment sample in direction ``d`` drawn with density ``pdf``:
+    BSDF value x radiance x visibility x ``weight(bsdf_pdf)`` / pdf, 0 outside ``active``
+    and where ``pdf`` is 0. ``weight`` maps the BSDF's pdf of ``d`` to the sample's MIS
+    weight. Every environment strategy of every integrator here ends in this."""
+    act = mi.Bool(active) & (pdf > 0)
+    bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
+    act &= ~scene.ray_test(si.spawn_ray(d), act)
+    radiance = scene.environment().eval(environment_ray_target(d), act)
+    return dr.select(act, bsdf_val * radiance * (weight(bsdf_pdf) / pdf), 0.0)
+
+
 def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, left_out, frac_e, frac_b,
                            weight_one=False) -> mi.Spectrum:
     """One sample of Mitsuba's emitter sampling, power-heuristic weighted

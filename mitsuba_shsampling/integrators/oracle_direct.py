@@ -9,7 +9,7 @@ from ..envmap.pyramid import EnvPyramid
 from ..lobes.fit import luminance
 from ..warp.oracle import OracleWarp
 from .environment import SceneCache
-from .estimators import (bsdf_sample_of_emitters, environment_ray_target, first_hit, is_emitter, mis_weight,
+from .estimators import (bsdf_sample_of_emitters, environment_sample, first_hit, is_emitter, mis_weight,
                          mitsuba_emitter_sample)
 from .options import OracleOptions, document_parameters
 
@@ -157,12 +157,8 @@ class OracleEnvironment:
         if self.warp is None:
             return mi.Spectrum(0.0)
         d, pdf = self.warp.sample(lobe, table, u, oracle)
-        act = oracle & (pdf > 0)
-        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
-        act &= ~scene.ray_test(si.spawn_ray(d), act)
-        Le = self.emitter.eval(environment_ray_target(d), act)
-        weight = mis_weight(pdf * frac_e, bsdf_pdf * frac_b)
-        return dr.select(act, bsdf_val * Le * (weight / pdf), 0.0)
+        return environment_sample(scene, si, bsdf, ctx, d, pdf, oracle,
+                                  lambda bsdf_pdf: mis_weight(pdf * frac_e, bsdf_pdf * frac_b))
 
     def emitter_nee(self, scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b):
         """One sample of Mitsuba's emitter sampling, without the environment's

@@ -182,8 +182,8 @@ class SceneLobes:
             if why is not None:
                 warnings.warn(
                     f"SceneLobes: BSDF '{bsdf.id()}' ({bsdf.class_name()}, flags "
-                    f"{int(bsdf.flags()):#x}): {why}; its surfaces sample the environment "
-                    "alone (MIS-compensated like the product) instead of the product.", stacklevel=2)
+                    f"{int(bsdf.flags()):#x}): {why}; it has no product lobe, and its surfaces use "
+                    "Mitsuba's envmap sampling (the environment strategies).", stacklevel=2)
             if support != "product":
                 row_of_id[key] = 0
                 continue

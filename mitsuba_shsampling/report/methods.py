@@ -102,13 +102,14 @@ METHODS: tuple[Method, ...] = (
     # 29-11854x direct's on the unit spheres), and the default job should not pay for it.
     Method("bsdf_only", "BSDF sampling only (2 samples)",
            {"type": "direct", "emitter_samples": 0, "bsdf_samples": 2}, by_default=False),
-    Method("sh_direct", "SH product + BSDF (MIS)",
+    Method("sh_direct", "SH direct, a strategy per material (auto)",
            {"type": "sh_direct", "emitter_samples": 1, "bsdf_samples": 1},
            plugin="sh_direct", product_sampling=True, role=PROJECT),
     # Without BSDF samples nothing covers the directions the compensated
     # product never draws, so product-only sampling must not compensate.
     Method("sh_product_only", "SH product sampling only (2 samples)",
-           {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0, "mis_compensation": False},
+           {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0, "mis_compensation": False,
+            "strategy": "product"},
            plugin="sh_direct", product_sampling=True, role=PROJECT),
     # Reference rows: the ideal the SH product is measured against (see module docstring).
     Method("oracle_direct", "reference row: exact tabulated product (oracle) + BSDF (MIS)",
@@ -118,7 +119,7 @@ METHODS: tuple[Method, ...] = (
            {"type": "oracle_direct", "emitter_samples": 2, "bsdf_samples": 0},
            plugin="oracle_direct", role=REFERENCE),
     Method("path", "path tracer (envmap + BSDF, MIS)", {"type": "path"}, family=MULTI_BOUNCE),
-    Method("sh_path", "SH product path tracer", {"type": "sh_path"}, family=MULTI_BOUNCE,
+    Method("sh_path", "SH path tracer, a strategy per material (auto)", {"type": "sh_path"}, family=MULTI_BOUNCE,
            plugin="sh_path", product_sampling=True, role=PROJECT),
 )
 
