@@ -162,7 +162,7 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
 
 
 #: BSDFs without a product lobe: their lanes sample the environment alone.
-NO_PRODUCT_LOBE = ("bumpmap", "normalmap", "anisotropic", "roughdielectric")
+NO_PRODUCT_LOBE = ("bumpmap", "normalmap", "roughdielectric")
 
 
 @pytest.mark.parametrize("name", list(BSDFS))
@@ -204,7 +204,12 @@ def test_only_integrators_that_may_skip_the_bsdf_sample_offer_strategies_without
 
 
 def test_bsdfs_without_a_product_lobe_choose_between_the_environment_strategies_only():
-    assert strategies_of(BSDFS["anisotropic"]) == ["environment", "environment_only"]
+    assert strategies_of(BSDFS["roughdielectric"]) == ["environment", "environment_only"]
+    assert strategies_of(BSDFS["normalmap"]) == ["environment", "environment_only"]
+
+
+def test_anisotropic_lobes_are_product_sampled_with_an_isotropic_proxy():
+    assert strategies_of(BSDFS["anisotropic"]) == ["environment", "environment_only", "product", "product_only"]
 
 
 def test_forcing_the_environment_strategy_builds_no_product():

@@ -178,11 +178,10 @@ def test_delta_bsdfs_give_use_product_false_without_warning(bsdf):
 
 
 @pytest.mark.parametrize("bsdf", [
-    {"type": "roughconductor", "alpha_u": 0.1, "alpha_v": 0.3},
-    {"type": "principled", "roughness": 0.3, "anisotropic": 0.7},
     {"type": "roughdielectric", "alpha": 0.2},
+    {"type": "roughdielectric", "alpha_u": 0.1, "alpha_v": 0.3},
 ])
-def test_anisotropic_and_transmissive_bsdfs_warn_once_and_give_use_product_false(bsdf):
+def test_transmissive_bsdfs_warn_once_and_give_use_product_false(bsdf):
     scene = mi.load_dict({
         "type": "scene",
         "a": {"type": "rectangle", "bsdf": dict(bsdf, id="odd")},
@@ -196,6 +195,33 @@ def test_anisotropic_and_transmissive_bsdfs_warn_once_and_give_use_product_false
     _, use_product = lobes.coefficients(hit_plane(scene, [0.4, 0.8]), identity)
     assert not np.array(use_product).any()
     assert lobes.has_product_lobes  # the diffuse sphere still has a lobe
+
+
+def fitted_exponent(bsdf: dict, view_node: int = 8) -> float:
+    scene = mi.load_dict({"type": "scene", "a": {"type": "rectangle", "bsdf": dict(bsdf, id="m")}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an anisotropic lobe is supported: no warning
+        lobes = SceneLobes(scene)
+    return float(lobes.fits["m"][0, view_node, 2])
+
+
+@pytest.mark.parametrize("bsdf", [
+    {"type": "roughconductor", "alpha_u": 0.1, "alpha_v": 0.3},
+    {"type": "principled", "roughness": 0.3, "anisotropic": 0.7},
+])
+def test_anisotropic_lobes_get_a_product_lobe(bsdf):
+    scene = plane_scene(bsdf)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        lobes = SceneLobes(scene)
+    _, use_product = lobes.coefficients(hit_plane(scene, [0.4, 0.8]), identity)
+    assert np.array(use_product).all()
+
+
+def test_an_anisotropic_lobes_proxy_is_the_view_azimuth_average_between_its_two_roughnesses():
+    sharp = fitted_exponent({"type": "roughconductor", "alpha": 0.1})
+    wide = fitted_exponent({"type": "roughconductor", "alpha": 0.3})
+    assert wide < fitted_exponent({"type": "roughconductor", "alpha_u": 0.1, "alpha_v": 0.3}) < sharp
 
 
 def test_per_lane_bsdf_identification_gives_each_spheres_row():

@@ -108,7 +108,7 @@ def luminance(value) -> mi.Float:
 
 
 def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.ndarray,
-                  uvs: np.ndarray, back_side: bool = False) -> np.ndarray:
+                  uvs: np.ndarray, back_side: bool = False, azimuths: int = 1) -> np.ndarray:
     """Cosine-weighted lobe g of ``bsdf`` at given light directions, per view elevation.
 
     Parameter ``view_cosines`` (K,): cos theta of ``si.wi`` (> 0; ``si.wi`` lies
@@ -118,18 +118,30 @@ def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.
     Parameter ``back_side``: evaluate the lobe below the surface instead (view
     and light directions mirrored to z < 0); the result is expressed in the
     mirrored frame (z -> -z), so the same fit applies.
+    Parameter ``azimuths``: for an anisotropic BSDF, the view and light directions
+    are also turned together about the normal by ``azimuths`` angles in [0, pi);
+    each counts as one more surface position, so a mean over positions is the
+    lobe averaged over the view's azimuth (an isotropic proxy).
 
-    Returns an array (K, M, U) of g values (luminance, per steradian).
+    Returns an array (K, M, U * azimuths) of g values (luminance, per steradian).
     """
     k_count, m_count = light_directions.shape[:2]
-    u_count = len(uvs)
+    angles = np.arange(azimuths) * np.pi / azimuths
+    u_count = len(uvs) * azimuths
     flip = -1.0 if back_side else 1.0
 
+    def turned(d):  # (..., 3) -> (..., U * azimuths, 3): each direction at every angle
+        c, s = np.cos(angles), np.sin(angles)
+        x = d[..., None, 0] * c - d[..., None, 1] * s
+        y = d[..., None, 0] * s + d[..., None, 1] * c
+        z = np.broadcast_to(d[..., None, 2], x.shape)
+        out = np.stack([x, y, z], axis=-1)
+        return np.repeat(out, len(uvs), axis=-2)
+
     wi = np.stack([view_direction(c) for c in view_cosines])           # (K, 3)
-    wi = np.broadcast_to(wi[:, None, None, :], (k_count, m_count, u_count, 3)).reshape(-1, 3)
-    wo = np.broadcast_to(light_directions[:, :, None, :],
-                         (k_count, m_count, u_count, 3)).reshape(-1, 3)
-    uv = np.broadcast_to(uvs[None, None, :, :], (k_count, m_count, u_count, 2)).reshape(-1, 2)
+    wi = np.broadcast_to(turned(wi)[:, None], (k_count, m_count, u_count, 3)).reshape(-1, 3)
+    wo = turned(light_directions).reshape(-1, 3)
+    uv = np.broadcast_to(np.tile(uvs, (azimuths, 1))[None, None], (k_count, m_count, u_count, 2)).reshape(-1, 2)
 
     si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
     si.t = 0.0

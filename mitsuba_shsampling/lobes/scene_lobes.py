@@ -90,6 +90,11 @@ def max_exponent_for_bands(n_bands: int, tol: float = BAND_ATTENUATION_TOL) -> f
     return lo
 
 
+ANISOTROPIC_AZIMUTHS = 8
+"""View azimuths an anisotropic lobe is averaged over: its proxy is the isotropic
+lobe of the same energy and mean sharpness (the product then follows it loosely,
+BSDF sampling under MIS takes the rest, and the chooser decides whether it pays)."""
+
 FRAME_WRAPPERS = ("BumpMap", "NormalMap")
 """BSDF classes that perturb the shading frame per point: their lobe is not
 oriented about ``si.sh_frame``, so no proxy is fitted (Mitsuba's sampling)."""
@@ -99,10 +104,11 @@ def lobe_support(bsdf: mi.BSDF) -> str:
     """How product sampling treats ``bsdf``, decided from its flags.
 
     - ``"delta"``: only Dirac (or null) components, nothing to sample from an SH lobe;
-    - ``"unsupported"``: anisotropic, with a non-Dirac transmission component
-      (the proxy is an isotropic reflection model), or a wrapper that perturbs
-      the shading frame (:data:`FRAME_WRAPPERS`);
-    - ``"product"``: everything else; the proxy is fitted to its ``eval``.
+    - ``"unsupported"``: with a non-Dirac transmission component (the proxy is a
+      reflection model), or a wrapper that perturbs the shading frame
+      (:data:`FRAME_WRAPPERS`);
+    - ``"product"``: everything else; the proxy is fitted to its ``eval``
+      (averaged over the view's azimuth for anisotropic lobes).
     """
     if bsdf.class_name() in FRAME_WRAPPERS:
         return "unsupported"
@@ -110,8 +116,6 @@ def lobe_support(bsdf: mi.BSDF) -> str:
     smooth = int(mi.BSDFFlags.Diffuse) | int(mi.BSDFFlags.Glossy)
     if not flags & smooth:
         return "delta"
-    if mi.has_flag(flags, mi.BSDFFlags.Anisotropic):
-        return "unsupported"
     if mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission) or mi.has_flag(flags, mi.BSDFFlags.GlossyTransmission):
         return "unsupported"
     return "product"
@@ -171,7 +175,7 @@ class SceneLobes:
             why = None
             if support == "unsupported":
                 why = ("it perturbs the shading frame" if bsdf.class_name() in FRAME_WRAPPERS
-                       else "it is anisotropic or transmissive")
+                       else "it is transmissive")
             elif support == "product" and not self._fit_is_usable(params):
                 support = "unsupported"
                 # An emitter's own shape gets a black BSDF by default: nothing
@@ -217,11 +221,13 @@ class SceneLobes:
             uvs = uvs[:1]
         params = np.zeros((2, self.view_nodes, 3))
         params[..., 2] = 1.0
+        anisotropic = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Anisotropic)
         quadratures = [mirror_quadrature(c) for c in self.view_cosines]
         lights = np.stack([q.directions for q in quadratures])
         sides = [False, True] if mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide) else [False]
         for side, back in enumerate(sides):
-            g = tabulate_lobe(bsdf, self.view_cosines, lights, uvs, back_side=back).mean(axis=2)
+            g = tabulate_lobe(bsdf, self.view_cosines, lights, uvs, back_side=back,
+                              azimuths=ANISOTROPIC_AZIMUTHS if anisotropic else 1).mean(axis=2)
             for k, quadrature in enumerate(quadratures):
                 fit = fit_two_lobe(g[k], quadrature)
                 params[side, k] = (fit.diffuse_weight, fit.glossy_weight, fit.exponent)
