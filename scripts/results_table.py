@@ -4,6 +4,7 @@
     python scripts/results_table.py sweep_out/aggregate.json     # every finished cell of a sweep
 
     python scripts/results_table.py sweep_out/aggregate.json --family path   # sh_path against path
+    python scripts/results_table.py sweep_out/aggregate.json --choices       # the chooser's predictions
 
 For every scene x sampler, the project's plugin at its defaults (``sh_direct``, or ``sh_path``
 with ``--family path``) is set against the *best* of Mitsuba's own strategies of that family in
@@ -12,6 +13,12 @@ verdict; lowest expected MSE at equal samples, highest efficiency = 1/(MSE x tim
 equal-sample passes, and from the renders at equal time, with the verdict's 90 % paired
 bootstrap interval), and against ``direct`` 1+1 (or ``path``). "bias ok" is the report's bias
 test (p >= 1e-3), "tail ok" its tail comparison with ``direct`` (or ``path``).
+
+``--choices`` prints, per cell, what ``strategy`` ``auto`` chose and predicted against what was
+measured: the predicted equal-time gain over the lean kernel (every material on its best
+environment strategy, i.e. one of Mitsuba's own) against the measured equal-time efficiency
+over the best Mitsuba strategy; and per material the chosen strategy, its predicted variance
+gain and the measured equal-sample error ratio there.
 """
 
 from __future__ import annotations
@@ -84,6 +91,44 @@ def rows(report: Report | dict, family: str):
             }
 
 
+def choice_rows(report: Report | dict, family: str):
+    """Per scene x sampler: the chooser's prediction against the measured ratios."""
+    report = load_report(report)
+    sh_method = DEFAULT_PLUGIN_METHOD[family]
+    for scene in report.scenes:
+        for run in scene.runs:
+            entry = run.methods.get(sh_method)
+            if entry is None or not entry.strategy_choice:
+                continue
+            measured = next(r for r in rows(report, family)
+                            if r["scene"] == scene.scene and r["sampler"] == run.sampler)
+            per_material = []
+            for row in run.materials.get(family, []):
+                picked = row.strategy.get(sh_method)
+                if picked:
+                    per_material.append({"material": row.name, "pixels": row.pixel_share, **picked,
+                                         "measured_error_ratio": row.error_ratio[sh_method].get("equal_spp")})
+            yield {"map": envmap_name(report), "scene": scene.scene,
+                   "lean": entry.strategy_choice["lean"],
+                   "predicted_gain": entry.strategy_choice["predicted_gain"],
+                   "measured_timed_eff_vs_best": measured["timed_eff_vs_best"],
+                   "measured_low": measured["timed_low"], "measured_high": measured["timed_high"],
+                   "chooser_s": entry.strategy_choice["seconds"], "materials": per_material}
+
+
+def print_choices(table: list[dict]) -> None:
+    print("| map | scene | kernel | predicted gain over the lean kernel | measured equal-time efficiency / best "
+          "Mitsuba [90 %] | products chosen (predicted variance gain / measured error ratio at equal samples) |")
+    print("|---|---|---|---|---|---|")
+    for r in table:
+        chosen = ", ".join(f"{m['material']} {m['strategy']} ({fmt(m['predicted_gain'])} / "
+                           f"{fmt(m['measured_error_ratio'])})" for m in r["materials"]
+                           if m["strategy"].startswith("product")) or "none"
+        print(f"| {r['map']} | {r['scene']} | {'lean' if r['lean'] else 'with product'} | "
+              f"{fmt(r['predicted_gain'])} | {fmt(r['measured_timed_eff_vs_best'])} [{fmt(r['measured_low'])}, "
+              f"{fmt(r['measured_high'])}] | {chosen} |")
+
+
 def fmt(x, digits=2):
     return "n/a" if x is None else f"{x:.{digits}f}"
 
@@ -94,7 +139,16 @@ def main() -> None:
     parser.add_argument("--family", choices=(DIRECT, MULTI_BOUNCE), default=DIRECT,
                         help="direct: sh_direct against Mitsuba's direct strategies; path: sh_path against path")
     parser.add_argument("--json", help="also write the rows as JSON")
+    parser.add_argument("--choices", action="store_true",
+                        help="the chooser's predictions against the measured ratios, per cell and material")
     args = parser.parse_args()
+    if args.choices:
+        table = [r for path in args.reports for report in reports(path) for r in choice_rows(report, args.family)]
+        print_choices(table)
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(table, f, indent=1)
+        return
     table = [r for path in args.reports for report in reports(path) for r in rows(report, args.family)]
     base = BASELINE[args.family]
     print(f"| map | scene | MSE / {base} | MSE / best Mitsuba (which) | efficiency / {base} "

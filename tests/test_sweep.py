@@ -321,6 +321,19 @@ def test_results_table_script_reads_the_aggregate(first_sweep):
         (m, s) for s in ("sphere_diffuse", "sphere_ggx010") for m in ("sunsky", "studio_small_03_1k"))
 
 
+def test_results_table_script_sets_the_choosers_predictions_against_the_measurement(first_sweep):
+    _, _, out, _ = first_sweep
+    printed = subprocess.run([sys.executable, os.path.join(REPO, "scripts", "results_table.py"),
+                              os.path.join(out, "aggregate.json"), "--choices"],
+                             capture_output=True, text=True, check=True).stdout
+    table = [line.split(" | ") for line in printed.splitlines() if line.startswith("| ") and "sphere_" in line]
+    assert len(table) == 4
+    for cells in table:
+        assert cells[2] in ("lean", "with product")
+        assert float(cells[3]) >= 1.0  # the predicted gain over the lean kernel
+        assert float(cells[4].split(" ")[0]) > 0  # the measured equal-time ratio
+
+
 # Pieces -------------------------------------------------------------------------------------
 
 def test_thread_plan_shares_each_hosts_cores_between_its_workers():
