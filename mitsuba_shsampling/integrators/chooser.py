@@ -378,6 +378,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     table.assign(choice)
     if lean and env.warp is not None:
         env.drop_product()
+    if not any(s.carries_all for s in choice.values()):
+        env.carry_all = False  # no lane skips its BSDF sample: the branch is not traced either
 
     report = []
     for key in materials:
