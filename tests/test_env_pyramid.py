@@ -323,7 +323,9 @@ def test_depth_resolves_the_texels_plus_subtexel_levels_and_is_capped():
     assert auto_depth(32, 64, max_depth=4) == 4
     pyramid = EnvPyramid(envmap_emitter(random_latlong(32, 64)), max_depth=3)
     assert pyramid.depth == 3
-    assert pyramid.nbytes == pyramid.buffer.numpy().nbytes == 4 * 4 * (1 + (4 ** 3 - 1) // 3)
+    assert pyramid.buffer.numpy().nbytes == 4 * 4 * (1 + (4 ** 3 - 1) // 3)
+    assert pyramid.corners.numpy().nbytes == 4 * (2 ** 3 + 1) ** 2
+    assert pyramid.nbytes == pyramid.buffer.numpy().nbytes + pyramid.corners.numpy().nbytes
     assert pyramid.build_time_s >= 0
     with pytest.raises(ValueError):
         EnvPyramid(envmap_emitter(random_latlong(4, 8)), max_depth=0)

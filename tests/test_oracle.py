@@ -81,12 +81,12 @@ def test_chi2_oracle_samples_follow_the_oracle_pdf_at_a_shading_point(sun_pyrami
     warp = OracleWarp(sun_pyramid, RESOLUTION)
     table = warp.tabulate(f)
     # In the grid frame chi2's (cos theta, phi) bins nest inside the leaves, where
-    # the pdf is constant (see tests/test_product.py:run_chi2).
+    # the pdf is bilinear (see tests/test_product.py:run_chi2).
     test = chi2.ChiSquareTest(
         domain=chi2.SphericalDomain(),
         sample_func=lambda u: sun_pyramid.grid_from_world(warp.sample(f, table, u)[0]),
         pdf_func=lambda d: warp.pdf(f, table, sun_pyramid.world_from_grid(d)),
-        sample_dim=2, sample_count=400_000, res=1 << DEPTH, ires=2, seed=5)
+        sample_dim=2, sample_count=400_000, res=1 << DEPTH, ires=16, seed=5)
     assert test.run(0.01), test.messages
 
 

@@ -100,6 +100,11 @@ def uniform_samples(count: int, seed: int = 7) -> mi.Point2f:
 #: leaves environment-only levels below it.
 CHI2_DEPTH = 7
 
+#: How far pdf(d) may be from the pdf sample() returned with d: inside a leaf on a sun the
+#: bilinear density is steep, and the float32 round trip of d through the world frame moves
+#: the point enough to change it by up to 2e-4.
+PDF_ROUND_TRIP_RTOL = 1e-3
+
 
 @pytest.fixture(scope="module")
 def sun_pyramid() -> EnvPyramid:
@@ -118,9 +123,12 @@ def run_chi2(warp: ProductWarp, coeffs: list[float]) -> chi2.ChiSquareTest:
     The test runs in the pyramid's grid frame (a rotation of the world: the
     density is unchanged), where chi2's (cos theta, phi) bins can be aligned
     with the leaves: 2^D bins in cos theta and 2^(D+1) in phi put every bin
-    inside one leaf, where the pdf is constant, so chi2's trapezoid
-    integration of the pdf is exact. (Bins cutting across leaf edges, with a
-    1e5 sun, make the integrated pdf off by ~1 % and the test meaningless.)
+    inside one leaf, where the pdf is bilinear. (Bins cutting across leaf edges,
+    with a 1e5 sun, make the integrated pdf off by ~1 % and the test meaningless.)
+    16 x 16 points per bin: with 2 (the bin's corners) chi2's trapezoid rule read
+    the pdf at leaf edges, where a float32 round trip through the world frame
+    can land in the neighbouring leaf, and integrated it to 0.76 (a fine grid
+    gives 1.000).
     """
     coeffs = opaque(coeffs)
     pyramid = warp.pyramid
@@ -128,7 +136,7 @@ def run_chi2(warp: ProductWarp, coeffs: list[float]) -> chi2.ChiSquareTest:
         domain=chi2.SphericalDomain(),
         sample_func=lambda u: pyramid.grid_from_world(warp.sample(coeffs, u)[0]),
         pdf_func=lambda d: warp.pdf(coeffs, pyramid.world_from_grid(d)),
-        sample_dim=2, sample_count=1_000_000, res=1 << warp.depth, ires=2, seed=3)
+        sample_dim=2, sample_count=1_000_000, res=1 << warp.depth, ires=16, seed=3)
 
 
 # ------------------------------------------------------------------- chi2
@@ -195,7 +203,7 @@ def test_sample_returns_the_pdf_that_pdf_evaluates(sun_pyramid, sh_depth):
     pdf, again = pdf.numpy(), again.numpy()
     assert np.all(np.isfinite(pdf)) and np.all(pdf > 0)
     assert np.allclose(np.linalg.norm(d.numpy(), axis=0), 1.0, atol=1e-5)
-    assert np.max(np.abs(again - pdf) / pdf) <= 1e-4
+    assert np.max(np.abs(again - pdf) / pdf) <= PDF_ROUND_TRIP_RTOL
 
 
 @pytest.mark.parametrize("lobe", ["diffuse_cosine_up", "phong20_rotated"])
@@ -281,8 +289,8 @@ def test_lobe_without_positive_mass_or_non_finite_falls_back_to_environment_samp
         assert np.all(np.isfinite(d.numpy()))
         assert np.all(pdf.numpy() > 0)
         expected = environment_only.pdf(opaque(zonal_lobe(cosine_attenuation(3), (0.0, 0.0, 1.0))), d)
-        assert np.allclose(pdf.numpy(), expected.numpy(), rtol=1e-4)
-        assert np.allclose(warp.pdf(opaque(coeffs), d).numpy(), pdf.numpy(), rtol=1e-4)
+        assert np.allclose(pdf.numpy(), expected.numpy(), rtol=PDF_ROUND_TRIP_RTOL)
+        assert np.allclose(warp.pdf(opaque(coeffs), d).numpy(), pdf.numpy(), rtol=PDF_ROUND_TRIP_RTOL)
 
 
 @pytest.mark.parametrize("share", [0.05, 0.1, 0.5])
@@ -314,7 +322,7 @@ def test_tiny_and_odd_sized_maps_sample_consistently(shape):
     d, pdf = warp.sample(coeffs, uniform_samples(2048))
     again = warp.pdf(coeffs, d).numpy()
     assert np.all(pdf.numpy() > 0)
-    assert np.max(np.abs(again - pdf.numpy()) / pdf.numpy()) <= 1e-4
+    assert np.max(np.abs(again - pdf.numpy()) / pdf.numpy()) <= PDF_ROUND_TRIP_RTOL
     single = opaque(zonal_lobe(phong_attenuation(20.0, 5), (0.2, 0.1, 0.9)))
     assert leaf_probability_sum(warp, single) == pytest.approx(1.0, abs=2e-5)
 
@@ -329,12 +337,13 @@ def test_large_map_is_sampled_at_the_pyramids_capped_depth():
     del image
     warp = ProductWarp(pyramid)
     assert warp.depth == pyramid.depth <= 12
-    assert pyramid.nbytes <= 4 * (4 ** (pyramid.depth + 1) + 8) // 3
+    assert pyramid.nbytes <= 4 * (4 ** (pyramid.depth + 1) + 8) // 3 + 4 * (2 ** pyramid.depth + 1) ** 2
     coeffs = per_lane_lobes(3, 1 << 16, seed=4)
     d, pdf = warp.sample(coeffs, uniform_samples(1 << 16))
     again = warp.pdf(coeffs, d).numpy()
     assert np.all(pdf.numpy() > 0)
-    assert np.max(np.abs(again - pdf.numpy()) / pdf.numpy()) <= 1e-4
+    # Leaves of 1e-3 in z: the same world-frame round trip is a larger step inside them.
+    assert np.max(np.abs(again - pdf.numpy()) / pdf.numpy()) <= 5 * PDF_ROUND_TRIP_RTOL
 
 
 # ------------------------------------------------------------- parameters
@@ -389,7 +398,7 @@ def test_chi2_samples_follow_own_pdf_with_proxy_levels(real_pyramid):
         domain=chi2.SphericalDomain(),
         sample_func=lambda u: pyramid.grid_from_world(warp.sample(coeffs, u, proxy)[0]),
         pdf_func=lambda d: warp.pdf(coeffs, pyramid.world_from_grid(d), proxy),
-        sample_dim=2, sample_count=1_000_000, res=1 << warp.depth, ires=2, seed=3)
+        sample_dim=2, sample_count=1_000_000, res=1 << warp.depth, ires=16, seed=3)
     assert test.run(0.01), test.messages
 
 
@@ -400,7 +409,7 @@ def test_proxy_levels_sample_returns_the_pdf_that_pdf_evaluates_and_keep_the_def
     d, pdf = warp.sample(coeffs, uniform_samples(count), proxies)
     pdf, again = pdf.numpy(), warp.pdf(coeffs, d, proxies).numpy()
     assert np.all(np.isfinite(pdf)) and np.all(pdf > 0)
-    assert np.max(np.abs(again - pdf) / pdf) <= 1e-4
+    assert np.max(np.abs(again - pdf) / pdf) <= PDF_ROUND_TRIP_RTOL
     uniform = mi.warp.square_to_uniform_sphere(uniform_samples(count, seed=8))
     pdf_env = ProductWarp(sun_pyramid, defensive_share=1.0).pdf(coeffs, uniform).numpy()
     pdf = warp.pdf(coeffs, uniform, proxies).numpy()

@@ -124,6 +124,30 @@ def _theta_integrals(lum: np.ndarray, n: int) -> np.ndarray:
     return g[:-1]
 
 
+def _corner_radiance(lum: np.ndarray, n: int) -> np.ndarray:
+    """The map's luminance at the corners of the finest cells, (n + 1, n + 1) float32,
+    rows iz (z = -1 + 2 iz / n), columns iphi (phi = 2 pi iphi / n).
+
+    The same interpolant as the integrals: linear in theta between rows (row y at
+    theta = y pi / (H - 1), the +Y pole first), linear in u between columns (column x
+    at u = (x + 0.5) / W, periodic), with u = 1 - phi / (2 pi) in the grid frame.
+    """
+    height, width = lum.shape
+    theta = np.arccos(np.clip(-1.0 + 2.0 * np.arange(n + 1) / n, -1.0, 1.0))
+    row = np.clip(theta * (height - 1) / np.pi, 0.0, height - 1)
+    r0 = np.minimum(row.astype(np.int64), max(height - 2, 0))
+    fr = (row - r0)[:, None]
+    r1 = np.minimum(r0 + 1, height - 1)
+    column = ((1.0 - np.arange(n + 1) / n) * width - 0.5) % width
+    c0 = np.floor(column).astype(np.int64) % width
+    fc = (column - np.floor(column))[None, :]
+    c1 = (c0 + 1) % width
+    lum = lum.astype(np.float32)
+    top = lum[r0][:, c0] * (1 - fc) + lum[r0][:, c1] * fc
+    bottom = lum[r1][:, c0] * (1 - fc) + lum[r1][:, c1] * fc
+    return (top * (1 - fr) + bottom * fr).astype(np.float32)
+
+
 def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
     """Integrate band profiles over the n phi-cells of the grid.
 
@@ -318,6 +342,7 @@ class EnvPyramid:
         finest = scale * _phi_integrals(_theta_integrals(luminance, n), n)
         radiant_total = float(finest.sum(dtype=np.float64))
         compensated = False
+        corners = np.maximum(_corner_radiance(luminance, n) * np.float32(scale), 0.0)
         if mis_compensation and radiant_total > 0:
             # MIS compensation (Karlik et al. 2019): subtract the mean radiance
             # (cells have equal solid angle) so this strategy concentrates on
@@ -326,6 +351,7 @@ class EnvPyramid:
             sharpened = np.maximum(finest - radiant_total / finest.size, 0.0)
             if sharpened.max() > 0:
                 finest, compensated = sharpened.astype(np.float32), True
+                corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
 
         buffer = np.zeros(4 * _block_offset(depth), dtype=np.float32)
         level = finest
@@ -346,11 +372,14 @@ class EnvPyramid:
         self.mis_compensation: bool = compensated
         self.is_black: bool = self.total == 0.0
         self.buffer: mi.Float = mi.Float(buffer)
-        self.nbytes: int = buffer.nbytes
+        #: The sampling target (radiance, compensated like the cells) at the finest
+        #: cells' corners, (2^D + 1)^2 values: the bilinear density inside a leaf.
+        self.corners: mi.Float = mi.Float(corners.ravel())
+        self.nbytes: int = buffer.nbytes + corners.nbytes
         self.to_world: mi.AffineTransform4f = to_world
         self.to_local: mi.AffineTransform4f = to_world.inverse()
         self.texel_resolution: tuple[int, int] = (height, width)
-        dr.eval(self.buffer)
+        dr.eval(self.buffer, self.corners)
         self.build_time_s: float = time.perf_counter() - start
 
     # ----------------------------------------------------------------- lookups
@@ -375,6 +404,17 @@ class EnvPyramid:
         index = 4 * block + 2 * (iz & 1) + (iphi & 1)
         index = dr.select(mi.UInt32(level) == 0, 0, index)
         return dr.gather(mi.Float, self.buffer, index, active)
+
+    def leaf_corners(self, leaf) -> list:
+        """The target at a finest cell's corners (z0 phi0, z0 phi1, z1 phi0, z1 phi1), each
+        raised by a tenth of their mean: samples follow the bilinear slope inside the leaf
+        (a sun smaller than a texel is then drawn where it is, not spread over the leaf),
+        and the density stays within a bounded factor of uniform everywhere in it."""
+        row = (1 << self.depth) + 1
+        base = mi.UInt32(leaf.iz) * row + mi.UInt32(leaf.iphi)
+        values = [dr.gather(mi.Float, self.corners, base + offset) for offset in (0, 1, row, row + 1)]
+        floor = 0.025 * ((values[0] + values[1]) + (values[2] + values[3]))
+        return [v + floor for v in values]
 
     def level_numpy(self, k: int) -> np.ndarray:
         """Level k as a (2^k, 2^k) float32 array, rows = iz, columns = iphi."""

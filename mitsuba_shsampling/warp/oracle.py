@@ -45,7 +45,7 @@ import mitsuba as mi
 
 from ..grid import Cell, grid_coordinates, grid_direction
 from .hierarchy import LAST_BELOW_ONE, descend_pyramid_pdf, descend_pyramid_sample
-from .product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share, place_in_leaf
+from .product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share, leaf_pdf, place_in_leaf
 
 #: Cells per side of the table. Measured (64 px, 8 spp, 8 passes, MSE against ``direct``):
 #: on a GGX 0.1 sphere under immenstadter_horn, oracle-only sampling gave 0.175 / 0.131 /
@@ -175,7 +175,8 @@ class OracleWarp:
         cell = Cell(self.level, iz, iphi)
         leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.pyramid.depth, z, phi)
         active = mi.Bool(active) & (not self.pyramid.is_black)
-        return dr.select(active, self.cell_probability(f, table, cell, active) * p_leaf / leaf.area, 0.0)
+        return dr.select(active, self.cell_probability(f, table, cell, active) * p_leaf
+                         * leaf_pdf(self.pyramid, leaf, z, phi), 0.0)
 
     @dr.syntax
     def _pick_cell(self, f: Lobe, table: OracleTable, u: mi.Point2f, active: mi.Bool):

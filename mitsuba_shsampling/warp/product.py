@@ -52,8 +52,8 @@ import mitsuba as mi
 
 from ..grid import Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of
-from .hierarchy import (Split, check_depth, descend_pyramid_pdf, descend_pyramid_sample, select_child,
-                        walk_pdf, walk_sample)
+from .hierarchy import (Split, check_depth, descend_pyramid_pdf, descend_pyramid_sample, leaf_density,
+                        sample_leaf, select_child, walk_pdf, walk_sample)
 from .hsw import SHCellState, SHCellWeights
 from .proxy_lobe import ProxyLobe
 
@@ -217,7 +217,8 @@ class ProductWeights:
 
 def place_in_leaf(pyramid, leaf: Cell, t: mi.Point2f, prob, valid, u: mi.Point2f):
     """(world direction, solid-angle pdf) of the point ``t`` in [0,1)^2 of ``leaf``, chosen with
-    probability ``prob``: uniform inside the leaf, as the pyramid's cell integrals assume."""
+    probability ``prob``: by the bilinear interpolant of the pyramid's target at the leaf's
+    corners (:meth:`EnvPyramid.leaf_corners`); :func:`leaf_pdf` is its density."""
     valid = valid & (not pyramid.is_black)
     # Keep the point off the leaf's edges: the float32 round trip
     # grid -> world (to_world) -> grid in pdf() moves a direction by
@@ -226,11 +227,16 @@ def place_in_leaf(pyramid, leaf: Cell, t: mi.Point2f, prob, valid, u: mi.Point2f
     # LEAF_EDGE_MARGIN of a leaf's mass within the leaf; after `depth`
     # rescalings t has only ~2^(depth - 24) resolution anyway.
     t = dr.clip(t, LEAF_EDGE_MARGIN, 1.0 - LEAF_EDGE_MARGIN)
-    z = dr.lerp(leaf.z0, leaf.z1, t.x)
-    phi = dr.lerp(leaf.phi0, leaf.phi1, t.y)
+    z, phi, density = sample_leaf("bilinear", leaf, t, pyramid.leaf_corners)
     d = pyramid.world_from_grid(grid_direction(z, phi))
     d = dr.select(valid, d, mi.warp.square_to_uniform_sphere(u))
-    return d, dr.select(valid, prob / leaf.area, 0.0)
+    return d, dr.select(valid, prob * density / leaf.area, 0.0)
+
+
+def leaf_pdf(pyramid, leaf: Cell, z, phi) -> mi.Float:
+    """Density (per steradian, given the leaf) with which :func:`place_in_leaf` places a
+    point at grid coordinates (z, phi) of ``leaf``."""
+    return leaf_density("bilinear", leaf, z, phi, pyramid.leaf_corners) / leaf.area
 
 
 class ProductWarp:
@@ -293,4 +299,4 @@ class ProductWarp:
         provider = self._provider(coeffs, proxy)
         cell, _, prob, _ = walk_pdf(provider, provider.walk_depth, z, phi)
         leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.depth, z, phi)
-        return prob * p_leaf / leaf.area
+        return prob * p_leaf * leaf_pdf(self.pyramid, leaf, z, phi)
