@@ -283,7 +283,8 @@ def measure_stages(stages: list[Stage], repeats: int) -> dict[str, dict]:
         if stage.run is not None:
             runs = costs[stage.key]
             result[stage.key] = dict(kernels=runs[0].kernels, kernel_ops=runs[0].ops,
-                                     execution_ms=statistics.median(r.execution_ms for r in runs))
+                                     execution_ms=statistics.median(r.execution_ms for r in runs),
+                                     execution_ms_runs=[r.execution_ms for r in runs])
         else:
             whole, part = (result[k] for k in stage.difference)
             result[stage.key] = dict(kernels=0, kernel_ops=whole["kernel_ops"] - part["kernel_ops"],
@@ -326,6 +327,7 @@ def measure_passes(scene: mi.Scene, spp: int, repeats: int) -> dict[str, dict]:
             costs[key].append(launch(render(integrator, seed)))
     return {key: dict(kernels=runs[0].kernels, kernel_ops=alone_ops[key], shared_kernel_ops=runs[0].ops,
                       execution_ms=statistics.median(r.execution_ms for r in runs),
+                      execution_ms_runs=[r.execution_ms for r in runs],
                       wall_ms=statistics.median(r.wall_ms for r in runs))
             for key, runs in costs.items()}
 
