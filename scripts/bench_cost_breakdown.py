@@ -118,7 +118,7 @@ def lobe_arrays(lobe) -> list:
 
 # ------------------------------------------------------------------ the lanes
 
-def camera_first_hits(scene: mi.Scene, spp: int, seed: int = 0):
+def camera_rays(scene: mi.Scene, spp: int, seed: int = 0):
     """(ray, number of camera samples): ``spp`` jittered camera rays per pixel, as a pass traces them."""
     sensor = scene.sensors()[0]
     width, height = sensor.film().crop_size()
@@ -140,7 +140,7 @@ def product_lanes(scene: mi.Scene, env, spp: int, max_lanes: int):
     """(first hits of the product lanes, camera samples, product lanes in the film):
     the camera's first hits whose material runs the product strategy, at most
     ``max_lanes`` of them, taken evenly over the film."""
-    ray, count = camera_first_hits(scene, spp)
+    ray, count = camera_rays(scene, spp)
     dr.eval(ray)
     si = scene.ray_intersect(ray)
     _, use_product = env.lobe(si, smooth_lanes(si))
@@ -159,8 +159,12 @@ def product_lanes(scene: mi.Scene, env, spp: int, max_lanes: int):
 
 @dataclasses.dataclass
 class Stage:
+    """One row of the breakdown: a kernel, or the difference of two."""
+
     key: str
+    """Its name in the JSON."""
     label: str
+    """Its name in the table (indented: a part of the product sample)."""
     run: Callable[[], object] | None
     """Traces the stage and returns what to evaluate (None: the difference of two stages)."""
     difference: tuple[str, str] | None = None
