@@ -278,7 +278,9 @@ class ProductWarp:
         self.defensive_share = check_defensive_share(defensive_share)
         self.proxy_depth = None if proxy_depth is None else min(check_depth(proxy_depth), self.depth)
 
-    def _provider(self, coeffs, proxy):
+    def weights(self, coeffs, proxy: ProxyLobe | None = None) -> ProductWeights:
+        """The weight provider that :meth:`sample` and :meth:`pdf` walk (the cost
+        benchmark, ``scripts/bench_cost_breakdown.py``, walks its levels apart)."""
         coeffs = as_coefficients(coeffs)
         sh_depth = default_sh_depth(bands_of(coeffs)) if self.sh_depth is None else self.sh_depth
         return ProductWeights(coeffs, self.pyramid, min(sh_depth, self.depth), self.defensive_share,
@@ -286,7 +288,7 @@ class ProductWarp:
 
     def sample(self, coeffs, u: mi.Point2f, proxy: ProxyLobe | None = None):
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
-        provider = self._provider(coeffs, proxy)
+        provider = self.weights(coeffs, proxy)
         cell, t, prob, valid, _ = walk_sample(provider, provider.walk_depth, u)
         # Below the product levels both parts of the mixture follow the
         # environment: its own pyramid finishes the walk.
@@ -296,7 +298,7 @@ class ProductWarp:
     def pdf(self, coeffs, d: mi.Vector3f, proxy: ProxyLobe | None = None) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
         z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
-        provider = self._provider(coeffs, proxy)
+        provider = self.weights(coeffs, proxy)
         cell, _, prob, _ = walk_pdf(provider, provider.walk_depth, z, phi)
         leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.depth, z, phi)
         return prob * p_leaf * leaf_pdf(self.pyramid, leaf, z, phi)
