@@ -93,6 +93,8 @@ class ProductEnvironment:
         self.env_directions = (EmitterDirections(compensated_copy(self.emitter)) if self.pyramid.mis_compensation
                                else self.env_plain)
         forced = None if options.strategy == AUTO else strategy_named(options.strategy)
+        # A forced strategy that keeps the BSDF sample leaves nothing to trace for lanes without it.
+        self.carry_all = carry_all and (forced is None or forced.carries_all)
         #: The product with the map itself (not compensated): the strategy of
         #: lanes where it carries every sample, so that nothing is left to a
         #: BSDF sample that does not run there. The same warp when the scene's
@@ -199,6 +201,8 @@ class ProductEnvironment:
         (docs/MEASUREMENTS.md, "Product allocation")."""
         if plain is False or self.warp_plain is self.warp:
             return self.warp.sample(lobe.coeffs, u, lobe.proxy)
+        if plain is True:
+            return self.warp_plain.sample(lobe.coeffs, u, lobe.proxy)
         return dr.if_stmt(args=(lobe, u), cond=plain,
                           true_fn=lambda c, v: self.warp_plain.sample(c.coeffs, v, c.proxy),
                           false_fn=lambda c, v: self.warp.sample(c.coeffs, v, c.proxy))
@@ -207,6 +211,8 @@ class ProductEnvironment:
         """(direction, pdf) of the environment alone: uncompensated in ``plain`` lanes."""
         if plain is False or self.env_plain is self.env_directions:
             return self.env_directions.sample(u)
+        if plain is True:
+            return self.env_plain.sample(u)
         return dr.if_stmt(args=(u,), cond=plain, true_fn=self.env_plain.sample,
                           false_fn=self.env_directions.sample)
 
@@ -255,7 +261,9 @@ class ProductEnvironment:
         In ``carries_all`` lanes (:meth:`carries_all`) it is one of the lane's
         equally weighted samples: weight ``frac_e``. Elsewhere it is
         power-heuristic weighted against BSDF sampling with the strategies'
-        sample-count fractions."""
+        sample-count fractions. ``carries_all`` may be the Python value True
+        (inside a branch that only such lanes enter): then only the
+        uncompensated walks are traced."""
         if not self.active:
             return mi.Spectrum(0.0)
         smooth = mi.Bool(smooth)
@@ -263,6 +271,8 @@ class ProductEnvironment:
         d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
                               true_fn=lambda c, v: self.sample_environment(c, v, use_product, carries_all),
                               false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
+        if carries_all is True:  # a lane known to carry all: no MIS weight to trace
+            return environment_sample(scene, si, bsdf, ctx, d, pdf_e, smooth, lambda _: frac_e)
         return environment_sample(
             scene, si, bsdf, ctx, d, pdf_e, smooth,
             lambda bsdf_pdf: dr.select(carries_all, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)))

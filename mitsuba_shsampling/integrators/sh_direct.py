@@ -116,7 +116,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 args=(sample_1, sample_2), cond=carries_all,
                 # A strategy sample whose share of the lane's samples is frac_b.
                 true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product, smooth,
-                                                     mi.Bool(True), frac_b, frac_e) / n_b,
+                                                     True, frac_b, frac_e) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b, mitsuba_pdf) / n_b)
 
