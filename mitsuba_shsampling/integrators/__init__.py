@@ -3,7 +3,7 @@
 Mitsuba registrations are per variant. Importing :mod:`mitsuba_shsampling`
 calls :func:`register` for the active variant and installs a Mitsuba variant
 callback that calls it again after every ``mi.set_variant``, so ``sh_direct``,
-``sh_path`` and ``oracle_direct`` are always known to ``mi.load_dict`` and the
+``sh_path``, ``sh_prb`` and ``oracle_direct`` are always known to ``mi.load_dict`` and the
 XML parser.
 
 Under a variant the plugins cannot run on (scalar, spectral, polarized), all
@@ -21,7 +21,7 @@ import mitsuba as mi
 from .._backend import VariantError, unsupported_variant_reason
 
 #: Every plugin this package registers.
-PLUGIN_NAMES = ("sh_direct", "sh_path", "oracle_direct")
+PLUGIN_NAMES = ("sh_direct", "sh_path", "sh_prb", "oracle_direct")
 
 _class_variant: str | None = None
 
@@ -31,18 +31,20 @@ def _plugin_classes() -> dict[str, type]:
 
     A Python subclass of ``mi.SamplingIntegrator`` is tied to the variant that
     was active when its ``class`` statement ran, so the modules are re-executed
-    after a variant switch (as Mitsuba does for its own Python integrators).
+    after a variant switch (as Mitsuba does for its own Python integrators;
+    ``sh_prb``'s base class, Mitsuba's ``RBIntegrator``, is rebound by Mitsuba).
     """
     global _class_variant
-    from . import oracle_direct, sh_direct, sh_path
+    from . import oracle_direct, sh_direct, sh_path, sh_prb
 
     if _class_variant is not None and _class_variant != mi.variant():
         sh_direct = importlib.reload(sh_direct)
         sh_path = importlib.reload(sh_path)
+        sh_prb = importlib.reload(sh_prb)
         oracle_direct = importlib.reload(oracle_direct)
     _class_variant = mi.variant()
     return {"sh_direct": sh_direct.SHDirectIntegrator, "sh_path": sh_path.SHPathIntegrator,
-            "oracle_direct": oracle_direct.OracleDirectIntegrator}
+            "sh_prb": sh_prb.SHPRBIntegrator, "oracle_direct": oracle_direct.OracleDirectIntegrator}
 
 
 def _refusal(reason: str):
@@ -52,7 +54,7 @@ def _refusal(reason: str):
 
 
 def register() -> None:
-    """Register ``sh_direct``, ``sh_path`` and ``oracle_direct`` for the current variant (as stubs
+    """Register ``sh_direct``, ``sh_path``, ``sh_prb`` and ``oracle_direct`` for the current variant (as stubs
     that raise :class:`~mitsuba_shsampling.VariantError` under unsupported ones).
 
     :raises VariantError: no variant is set.

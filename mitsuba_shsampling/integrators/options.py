@@ -1,9 +1,10 @@
-"""Plugin parameters of ``sh_direct``, ``sh_path`` and ``oracle_direct``: defaults, limits,
-validation, documentation.
+"""Plugin parameters of ``sh_direct``, ``sh_path``, ``sh_prb`` and ``oracle_direct``: defaults,
+limits, validation, documentation.
 
 One frozen dataclass per plugin (:class:`DirectOptions`, :class:`PathOptions`,
 both extending :class:`ProductOptions`, the options of the product strategy;
-:class:`OracleOptions`), all extending :class:`PluginOptions`.
+:class:`PRBOptions`, extending :class:`PathOptions`; :class:`OracleOptions`),
+all extending :class:`PluginOptions`.
 Each field carries its documentation; the plugins' RST parameter tables are
 generated from it (:func:`document_parameters`), so code, checks and docs
 cannot disagree. Limits come from the modules that impose them: the SH basis
@@ -228,6 +229,18 @@ class PathOptions(ProductOptions):
             self._fail("max_depth", "must be -1 (infinite) or >= 0", self.max_depth)
         if self.rr_depth <= 0:
             self._fail("rr_depth", "must be > 0", self.rr_depth)
+
+
+@dataclasses.dataclass(frozen=True)
+class PRBOptions(PathOptions):
+    """Parameters of ``sh_prb``: those of Mitsuba's ``prb`` (its default ``max_depth``)
+    and the product strategy's."""
+
+    PLUGIN: ClassVar[str] = "sh_prb"
+
+    max_depth: int = dataclasses.field(default=6, metadata=_doc(
+        "Longest path, in vertices after the camera (-1: infinite). As in Mitsuba's "
+        "``prb``: 0 renders nothing, 1 only directly visible emitters, 2 direct lighting."))
 
 
 @dataclasses.dataclass(frozen=True)
