@@ -210,7 +210,7 @@ def test_a_differentiable_render_reuses_the_sampling_state_built_before_it():
     dr.enable_grad(params["ggx.bsdf.alpha.value"])
     dr.enable_grad(params["env.data"])
     params.update()
-    integrator = sh_prb()
+    integrator = sh_prb(rebuild_interval=1)
     env = integrator.scenes.get(scene)
     for seed in range(2):
         image = mi.render(scene, params, integrator=integrator, spp=4, seed=2 * seed, seed_grad=2 * seed + 1)
@@ -219,3 +219,45 @@ def test_a_differentiable_render_reuses_the_sampling_state_built_before_it():
     # passes nor attach it to the AD graph.
     assert integrator.scenes.get(scene) is env
     assert dr.grad(params["ggx.bsdf.alpha.value"])[0] != 0
+
+
+def roughen(scene, alpha):
+    params = mi.traverse(scene)
+    params["ggx.bsdf.alpha.value"] = alpha
+    params.update()
+
+
+def test_changed_parameters_rebuild_the_state_at_most_every_rebuild_interval_renders():
+    scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
+    integrator = sh_prb(rebuild_interval=3)
+    states = []
+    for k in range(7):
+        roughen(scene, 0.2 + 0.01 * k)  # an optimisation step: new parameter values every render
+        mi.render(scene, integrator=integrator, spp=1, seed=k)
+        states.append(integrator.scenes.get(scene, stale_ok=True))
+    # Built at renders 0, 3 and 6; the renders in between use the state as it was.
+    assert [states[k] is states[k - 1] for k in range(1, 7)] == [True, True, False, True, True, False]
+
+
+def test_every_render_sees_changed_parameters_with_rebuild_interval_1():
+    scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
+    integrator = sh_prb(rebuild_interval=1)
+    mi.render(scene, integrator=integrator, spp=1)
+    before = integrator.scenes.get(scene, stale_ok=True)
+    roughen(scene, 0.4)
+    mi.render(scene, integrator=integrator, spp=1)
+    assert integrator.scenes.get(scene, stale_ok=True) is not before
+
+
+def test_a_stale_state_still_renders_an_unbiased_image():
+    scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.05},
+                                  "diffuse": {"type": "diffuse"}})
+    integrator = sh_prb(max_depth=4, rebuild_interval=1000)
+    mi.render(scene, integrator=integrator, spp=1)  # the state for alpha 0.05 and the sun map
+    state = integrator.scenes.get(scene, stale_ok=True)
+    roughen(scene, 0.4)
+    params = mi.traverse(scene)
+    params["env.data"] = mi.TensorXf(params["env.data"].numpy()[::-1].copy())  # the sun moves to the other hemisphere
+    params.update()
+    assert_unbiased(scene, integrator, mi.load_dict({"type": "path", "max_depth": 4}))
+    assert integrator.scenes.get(scene, stale_ok=True) is state

@@ -322,9 +322,10 @@ class SceneCache:
         self._scene, self._env = None, None
         self._key, self._held = None, []
 
-    def get(self, scene: mi.Scene):
-        """The state ``build`` made for ``scene``, built again when its inputs changed."""
-        if self._scene is not scene or self._identity(self._inputs(scene)) != self._key:
+    def get(self, scene: mi.Scene, stale_ok: bool = False):
+        """The state ``build`` made for ``scene``, built again when its inputs changed;
+        with ``stale_ok`` only for another scene (the inputs are not even traversed)."""
+        if self._scene is not scene or (not stale_ok and self._identity(self._inputs(scene)) != self._key):
             self._env = self._build(scene)
             self._scene = scene
             # Read after the build, which may have sanitised the envmap's data.

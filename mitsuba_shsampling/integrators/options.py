@@ -42,6 +42,10 @@ from .strategy import AUTO, STRATEGY_NAMES, Strategy
 #: Band counts the lobe proxies support (:func:`~..lobes.scene_lobes.check_max_bands`).
 MIN_BANDS = DIFFUSE_BANDS
 
+# Rebuilding sh_prb's state at most every 16 renders keeps the build of the material studio's
+# lobe table (about 3.5 s) to a fraction of an optimisation's time (scripts/optimise_prb.py).
+DEFAULT_REBUILD_INTERVAL = 16
+
 # sh_depth 2 with the closed-form proxy down to level 6 (DEFAULT_PROXY_DEPTH):
 # at about the kernel operations of sh_depth 3 without the proxy, less
 # per-pixel variance on every sphere and map measured (docs/MEASUREMENTS.md,
@@ -241,6 +245,18 @@ class PRBOptions(PathOptions):
     max_depth: int = dataclasses.field(default=6, metadata=_doc(
         "Longest path, in vertices after the camera (-1: infinite). As in Mitsuba's "
         "``prb``: 0 renders nothing, 1 only directly visible emitters, 2 direct lighting."))
+    rebuild_interval: int = dataclasses.field(default=DEFAULT_REBUILD_INTERVAL, metadata=_doc(
+        "Renders (primal passes) at least between two builds of the sampling state (pyramid, "
+        "lobe table) while an optimisation changes its inputs (>= 1; 1: rebuilt whenever they "
+        "changed, as ``sh_path`` does). In between, the state of older parameters still gives "
+        "unbiased images and gradients (it is only a sampling density, MIS-combined with the "
+        "BSDF sample that always runs), at some variance; a build of the material studio's lobe "
+        "table takes seconds, many render passes' time."))
+
+    def _check_ranges(self) -> None:
+        super()._check_ranges()
+        if self.rebuild_interval < 1:
+            self._fail("rebuild_interval", "must be >= 1", self.rebuild_interval)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -50,6 +50,13 @@ class SHPRBIntegrator(RBIntegrator):
     :monosp:`sh_path` (it does not look through area emitters as
     :monosp:`prb` does).
 
+    The sampling state (the environment pyramid, the lobe table) is built from
+    the scene's parameters before the first render and rebuilt when they
+    change, at most once every ``rebuild_interval`` renders: an optimisation
+    changes them at every step, and a build costs many passes' time on a
+    scene with many materials. In between, the state of slightly older
+    parameters keeps images and gradients unbiased.
+
     .. tabs::
         .. code-tab:: xml
 
@@ -78,20 +85,26 @@ class SHPRBIntegrator(RBIntegrator):
                 return ProductEnvironment(scene, options)
 
         self.scenes = SceneCache(build)
+        self._state, self._renders_since_build = None, 0
 
-    # The per-scene state is built on the host before a pass is traced; the
-    # replay passes find it unchanged (same parameter variables) and reuse it.
+    # The per-scene state is built on the host before a pass is traced. A primal
+    # render rebuilds it when its inputs changed (at most every rebuild_interval
+    # renders); the derivative passes, which replay the primal pass themselves,
+    # and the traced passes take it as it is.
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        self.scenes.get(scene)
+        stale_ok = self._renders_since_build + 1 < self.options.rebuild_interval
+        state = self.scenes.get(scene, stale_ok=stale_ok)
+        self._renders_since_build = 0 if state is not self._state else self._renders_since_build + 1
+        self._state = state
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-        self.scenes.get(scene)
+        self.scenes.get(scene, stale_ok=True)
         return super().render_forward(scene, params, sensor, seed, spp)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
-        self.scenes.get(scene)
+        self.scenes.get(scene, stale_ok=True)
         return super().render_backward(scene, params, grad_in, sensor, seed, spp)
 
     @dr.syntax
@@ -105,7 +118,7 @@ class SHPRBIntegrator(RBIntegrator):
         # As Mitsuba's path: max_depth 0 renders nothing (not even emitters, alpha 0).
         if dr.hint(self.options.max_depth == 0, mode="scalar"):
             return mi.Spectrum(0.0), mi.Bool(False), [], mi.Spectrum(0.0)
-        env = self.scenes.get(scene)
+        env = self.scenes.get(scene, stale_ok=True)
         hide_emitters = self.options.hide_emitters
         ctx = mi.BSDFContext()
 
