@@ -4,8 +4,8 @@ Implements hierarchical sample warping of SH functions and SH-lobe x
 environment-map product sampling (Jarosz, Carr, Jensen, "Importance Sampling
 Spherical Harmonics", Eurographics 2009) as Dr.Jit kernels.
 
-Importing the package registers the ``sh_direct``, ``sh_path`` and ``oracle_direct`` integrator
-plugins for the active Mitsuba variant and for every variant set later.
+Importing the package registers the ``sh_direct``, ``sh_path``, ``sh_prb`` and ``oracle_direct``
+integrator plugins for the active Mitsuba variant and for every variant set later.
 """
 
 from ._backend import BackendError, VariantError, check_llvm_backend, prefer_good_libllvm

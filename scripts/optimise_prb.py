@@ -104,8 +104,8 @@ def main() -> None:
     records = {}
     for name, run in runs.items():
         first, last = run["history"][0], run["history"][-1]
-        print(f"{name:34s} {run['step']:6d} {run['clock'] / run['step']:7.3f} {run['builds']:6d} {first['loss']:11.4g} "
-              f"{last['loss']:10.4g} {last['roughness']:10.4f} {last['texture_rmse']:13.4f}")
+        print(f"{name:34s} {run['step']:6d} {run['clock'] / run['step']:7.3f} {run['builds']:6d} "
+              f"{first['loss']:11.4g} {last['loss']:10.4g} {last['roughness']:10.4f} {last['texture_rmse']:13.4f}")
         records[name] = {"steps": run["step"], "seconds": run["clock"], "state_builds": run["builds"],
                          "history": run["history"]}
     records["settings"] = vars(args)

@@ -56,7 +56,8 @@ def gradient_scene(envmaps_dir):
     return mi.load_dict({
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 1.3, 3.2], target=[0, 0.35, 0], up=[0, 1, 0]),
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 1.3, 3.2], target=[0, 0.35, 0],
+                                                              up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"}},
                    "sampler": {"type": "independent"}},
         "conductor": {"type": "sphere", "center": [-0.5, 0.45, 0], "radius": 0.45,
@@ -66,9 +67,15 @@ def gradient_scene(envmaps_dir):
                              "diffuse_reflectance": {"type": "rgb", "value": [0.04, 0.06, 0.1]}}},
         "ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3),
                    "bsdf": {"type": "diffuse",
-                            "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(texture), "filter_type": "nearest"}}},
+                            "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(texture),
+                                            "filter_type": "nearest"}}},
         "env": {"type": "envmap", "filename": str(envmaps_dir / "studio_small_03_1k.hdr")},
     })
+
+
+def image_weights():
+    """The fixed random per-pixel weights of the loss."""
+    return mi.TensorXf(np.random.default_rng(11).uniform(0.0, 2.0, (RES, RES, 3)).astype(np.float32))
 
 
 def weighted_loss(image, weights):
@@ -79,8 +86,8 @@ def gradient_samples(scene, integrator, passes=PASSES, spp=SPP, seed=0):
     """(passes, parameters) array: per pass, each parameter's gradient of a fixed
     weighted image mean (of a texture: its dot product with fixed random weights)."""
     params = mi.traverse(scene)
-    rng = np.random.default_rng(11)
-    image_weights = mi.TensorXf(rng.uniform(0.0, 2.0, (RES, RES, 3)).astype(np.float32))
+    weights = image_weights()
+    rng = np.random.default_rng(12)
     summary_weights = {k: rng.uniform(0.0, 1.0, dr.width(params[k])) if dr.width(params[k]) > 1 else np.ones(1)
                        for k in PARAMETERS}
     for key in PARAMETERS:
@@ -88,8 +95,9 @@ def gradient_samples(scene, integrator, passes=PASSES, spp=SPP, seed=0):
     params.update()
     samples = []
     for k in range(-1, passes):
-        image = mi.render(scene, params, integrator=integrator, spp=spp, seed=seed + 2 * k + 2, seed_grad=seed + 2 * k + 3)
-        dr.backward(weighted_loss(image, image_weights))
+        image = mi.render(scene, params, integrator=integrator, spp=spp,
+                          seed=seed + 2 * k + 2, seed_grad=seed + 2 * k + 3)
+        dr.backward(weighted_loss(image, weights))
         # The first pass warms up (kernels; Mitsuba's envmap texels get no gradient in the
         # first differentiable pass after grads are enabled, for prb as for sh_prb).
         if k >= 0:
@@ -101,7 +109,8 @@ def gradient_samples(scene, integrator, passes=PASSES, spp=SPP, seed=0):
 
 
 def welch_t(a, b):
-    return (a.mean(axis=0) - b.mean(axis=0)) / np.sqrt(a.var(axis=0, ddof=1) / len(a) + b.var(axis=0, ddof=1) / len(b))
+    se = np.sqrt(a.var(axis=0, ddof=1) / len(a) + b.var(axis=0, ddof=1) / len(b))
+    return (a.mean(axis=0) - b.mean(axis=0)) / se
 
 
 # ------------------------------------------------------------------ plugin and options
@@ -182,7 +191,7 @@ def test_gradients_agree_in_expectation_with_prbs(gradients, parameter):
 def test_a_roughness_gradient_matches_finite_differences_of_path_renders(envmaps_dir):
     scene = gradient_scene(envmaps_dir)
     params = mi.traverse(scene)
-    weights = mi.TensorXf(np.random.default_rng(11).uniform(0.0, 2.0, (RES, RES, 3)).astype(np.float32))
+    weights = image_weights()
     alpha, h = float(params[CONDUCTOR_ALPHA][0]), 0.05
 
     # Central differences with common random numbers (the same seeds at both ends).
@@ -191,8 +200,8 @@ def test_a_roughness_gradient_matches_finite_differences_of_path_renders(envmaps
     for value in (alpha - h, alpha + h):
         params[CONDUCTOR_ALPHA] = value
         params.update()
-        losses.append(np.array([weighted_loss(mi.render(scene, integrator=path, spp=2048, seed=50 + k), weights).numpy().item()
-                                for k in range(4)]))
+        images = [mi.render(scene, integrator=path, spp=2048, seed=50 + k) for k in range(4)]
+        losses.append(np.array([weighted_loss(image, weights).numpy().item() for image in images]))
     params[CONDUCTOR_ALPHA] = alpha
     params.update()
     differences = (losses[1] - losses[0]) / (2 * h)
@@ -257,7 +266,25 @@ def test_a_stale_state_still_renders_an_unbiased_image():
     state = integrator.scenes.get(scene, stale_ok=True)
     roughen(scene, 0.4)
     params = mi.traverse(scene)
-    params["env.data"] = mi.TensorXf(params["env.data"].numpy()[::-1].copy())  # the sun moves to the other hemisphere
+    # The sun moves to the other hemisphere.
+    params["env.data"] = mi.TensorXf(params["env.data"].numpy()[::-1].copy())
     params.update()
     assert_unbiased(scene, integrator, mi.load_dict({"type": "path", "max_depth": 4}))
     assert integrator.scenes.get(scene, stale_ok=True) is state
+
+
+def test_the_replay_follows_the_primal_paths_so_the_scale_derivative_is_the_image_over_the_scale():
+    # Every contribution is linear in the envmap's scale: along the same paths, the
+    # forward-mode derivative of each pixel is its primal value over the scale.
+    scene = make_scene(rotated=True, materials={"ggx": {"type": "roughconductor", "alpha": 0.2},
+                                                "diffuse": {"type": "diffuse"}})
+    params = mi.traverse(scene)
+    params["env.scale"] = 2.0
+    params.update()
+    integrator = sh_prb(max_depth=4, rr_depth=2)
+    image = integrator.render(scene, seed=7, spp=4).numpy()
+    dr.enable_grad(params["env.scale"])
+    dr.set_grad(params["env.scale"], 1.0)
+    derivative = integrator.render_forward(scene, params, seed=7, spp=4).numpy()
+    assert image.mean() > 0
+    np.testing.assert_allclose(derivative, image / 2.0, rtol=1e-4, atol=1e-6)
