@@ -13,8 +13,9 @@ import numpy as np
 import mitsuba_shsampling  # noqa: F401  (points Dr.Jit at a usable libLLVM first)
 import mitsuba as mi
 
-#: Side of the ground's albedo texture (texels).
-TEXTURE_RES = 64
+#: Side of the ground's albedo texture (texels): few enough that each covers many pixels of a
+#: small render (tiled 22 times over the ground, as the studio's own texture is).
+TEXTURE_RES = 16
 ROUGHNESS = "copper_ggx010.alpha.value"
 PLASTIC_ROUGHNESS = "plastic_ball.bsdf.alpha"
 TEXTURE = "ground.bsdf.reflectance.data"

@@ -9,7 +9,8 @@ randomly weighted image mean); texture and texel gradients are summarised by
 their dot product with fixed random weights. The means must agree by Welch's
 t-test, and be clearly non-zero (so the test cannot pass on two zeros). One
 roughness gradient is also checked against central finite differences of
-high-spp ``path`` renders.
+high-spp ``path`` renders, and the replay pass against the primal pass it
+replays (a derivative that is exactly the image over the envmap's scale).
 """
 
 import drjit as dr
@@ -29,7 +30,7 @@ SPP = 32
 PASSES = 48
 MAX_DEPTH = 3
 BANDS = 5  # small band count keeps the kernels quick to compile
-#: |t| above which two gradient means disagree (4 parameters tested at once).
+#: |t| above which two gradient means disagree (5 parameters tested at once).
 T_LIMIT = 4.5
 
 CONDUCTOR_ALPHA = "conductor.bsdf.alpha.value"

@@ -42,9 +42,11 @@ from .strategy import AUTO, STRATEGY_NAMES, Strategy
 #: Band counts the lobe proxies support (:func:`~..lobes.scene_lobes.check_max_bands`).
 MIN_BANDS = DIFFUSE_BANDS
 
-# Rebuilding sh_prb's state at most every 16 renders keeps the build of the material studio's
-# lobe table (about 3.5 s) to a fraction of an optimisation's time (scripts/optimise_prb.py).
-DEFAULT_REBUILD_INTERVAL = 16
+# sh_prb's state is rebuilt at most every 64 renders: a build of the material studio's lobe
+# table (3.5 s idle, 4-7 s on a busy machine) every 16 steps made an optimisation at 96 px and
+# 4 spp take 1.5x as long per step, while a state 64 steps old converged as well
+# (scripts/optimise_prb.py).
+DEFAULT_REBUILD_INTERVAL = 64
 
 # sh_depth 2 with the closed-form proxy down to level 6 (DEFAULT_PROXY_DEPTH):
 # at about the kernel operations of sh_depth 3 without the proxy, less
