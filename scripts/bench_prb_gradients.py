@@ -44,7 +44,7 @@ def main() -> None:
     parser.add_argument("--res", type=int, default=96, help="image width (height at the studio's aspect)")
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of each pass")
     parser.add_argument("--passes", type=int, default=32)
-    parser.add_argument("--target-spp", type=int, default=512)
+    parser.add_argument("--target-spp", type=int, default=4096)
     parser.add_argument("--json", default=None)
     args = parser.parse_args()
 

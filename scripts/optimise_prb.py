@@ -38,7 +38,7 @@ def main() -> None:
     parser.add_argument("--lr", type=float, default=0.02, help="Adam learning rate")
     parser.add_argument("--eval-every", type=int, default=5)
     parser.add_argument("--eval-spp", type=int, default=128)
-    parser.add_argument("--target-spp", type=int, default=512)
+    parser.add_argument("--target-spp", type=int, default=4096)
     parser.add_argument("--seed", type=int, default=0, help="offset of the steps' seeds")
     parser.add_argument("--rebuild-intervals", type=int, nargs="*", default=[],
                         help="further sh_prb runs with these rebuild_interval values")

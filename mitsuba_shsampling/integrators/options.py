@@ -44,8 +44,8 @@ MIN_BANDS = DIFFUSE_BANDS
 
 # sh_prb's state is rebuilt at most every 64 renders: a build of the material studio's lobe
 # table (3.5 s idle, 4-7 s on a busy machine) every 16 steps made an optimisation at 96 px and
-# 4 spp take 1.5x as long per step, while a state 64 steps old converged as well
-# (scripts/optimise_prb.py).
+# 4 spp take 1.3-1.5x as long per step, while a state 64 steps old converged as well
+# (scripts/optimise_prb.py; docs/MEASUREMENTS.md, "sh_prb's state rebuilds").
 DEFAULT_REBUILD_INTERVAL = 64
 
 # sh_depth 2 with the closed-form proxy down to level 6 (DEFAULT_PROXY_DEPTH):
