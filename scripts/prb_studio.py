@@ -67,8 +67,9 @@ def set_start(params: mi.SceneParameters) -> None:
 
 def render_target(res: int, spp: int = 4096) -> mi.TensorXf:
     """The image to match: the studio with its own parameters, rendered by ``path`` (in passes
-    of at most 1024 spp). Its noise is part of what an optimisation fits: at 512 spp the
-    recovered texture drifted towards it (the less noisy the gradients, the faster)."""
+    of at most 1024 spp). Its noise is part of what an optimisation fits: against a 512-spp
+    target every method's texture error was 0.05-0.07 after 40 s (``optimise_prb.py``), against
+    0.03-0.05 with 4096 spp."""
     scene = load_studio(res)
     path = mi.load_dict({"type": "path", "max_depth": 6})
     passes = max(1, spp // 1024)
