@@ -139,6 +139,7 @@ def test_defaults_are_prbs():
     ("rr_depth", 0, "must be > 0"),
     ("max_bands", 40, "must be in"),
     ("defensive_share", 0.0, "must be in (0, 1]"),
+    ("strategy", "product_only", "must be one of"),  # the BSDF sample always runs, as in sh_path
 ])
 def test_a_bad_parameter_raises_an_option_error_naming_sh_prb(name, value, requirement):
     with pytest.raises(OptionError, match=f"sh_prb: parameter '{name}' " + requirement.replace("(", r"\(")
@@ -152,8 +153,8 @@ def test_the_docstring_lists_every_parameter_and_shows_xml_and_dict_usage():
     from mitsuba_shsampling.integrators.sh_prb import SHPRBIntegrator
 
     doc = SHPRBIntegrator.__doc__
-    for name in ("max_depth", "rr_depth", "hide_emitters", "max_bands", "sh_depth", "proxy_depth",
-                 "mis_compensation", "defensive_share"):
+    for name in ("max_depth", "rr_depth", "rebuild_interval", "strategy", "hide_emitters", "max_bands",
+                 "sh_depth", "proxy_depth", "mis_compensation", "defensive_share"):
         assert f"* - {name}" in doc
     assert '<integrator type="sh_prb">' in doc and "'type': 'sh_prb'" in doc
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .chooser import StrategyChooser
 from .environment import ProductEnvironment, SceneCache
 from .estimators import environment_ray_target, mis_weight
 from .options import PRBOptions, document_parameters
@@ -28,9 +29,11 @@ class SHPRBIntegrator(RBIntegrator):
 
     Mitsuba's :monosp:`prb` (path replay backpropagation, :cite:`Vicini2021`)
     with the next-event estimation of :monosp:`sh_path`: at every vertex whose
-    BSDF has a smooth lobe, the environment map is sampled from the product of
-    the BSDF lobe proxy and the map (or from the map alone where the BSDF has
-    no product lobe), and combined with the BSDF sample that continues the
+    BSDF has a smooth lobe, the environment map is sampled with the strategy of
+    the vertex's material (``strategy``): from the product of the BSDF lobe
+    proxy and the map, or from the map alone (with ``auto``, chosen per
+    material before the first pass of each sampling state, as in
+    :monosp:`sh_path`), and combined with the BSDF sample that continues the
     path by the power heuristic (one sample each). Other emitters keep
     Mitsuba's emitter sampling; without an ``envmap`` it runs like :monosp:`prb`.
 
@@ -86,18 +89,27 @@ class SHPRBIntegrator(RBIntegrator):
 
         self.scenes = SceneCache(build)
         self._state, self._renders_since_build = None, 0
+        # One environment sample and one BSDF sample per vertex, as in sh_path.
+        self.chooser = StrategyChooser(1, 1)
 
     # The per-scene state is built on the host before a pass is traced. A primal
     # render rebuilds it when its inputs changed (at most every rebuild_interval
-    # renders); the derivative passes, which replay the primal pass themselves,
-    # and the traced passes take it as it is.
+    # renders), and with strategy auto chooses each material's strategy for a new
+    # state (pilot primal passes); the derivative passes, which replay the primal
+    # pass themselves, and the traced passes take it as it is.
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         stale_ok = self._renders_since_build + 1 < self.options.rebuild_interval
         state = self.scenes.get(scene, stale_ok=stale_ok)
         self._renders_since_build = 0 if state is not self._state else self._renders_since_build + 1
         self._state = state
+        self.chooser.before_render(state, scene, sensor,
+                                   lambda pilot_spp: super(SHPRBIntegrator, self).render(scene, sensor, seed, pilot_spp))
         return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    def choice(self, scene):
+        """The strategy chosen for each material of ``scene`` (see ``sh_direct``)."""
+        return self.scenes.get(scene, stale_ok=True).choice
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         self.scenes.get(scene, stale_ok=True)
