@@ -49,7 +49,7 @@ MAX_REFERENCE_NOISE = 0.1
 def configuration(name: str, result: MethodResult, family: str) -> str:
     """The plugin configuration of method ``name`` as a user writes it: ``sh_direct (defaults)``
     for :data:`.methods.DEFAULT_PLUGIN_METHOD`, else the plugin and the parameters the method
-    sets, ``sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false)``."""
+    sets, ``sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false, strategy=product)``."""
     integrator = dict(result.integrator or {"type": name})
     plugin = integrator.pop("type", name)
     if name == DEFAULT_PLUGIN_METHOD.get(family) or not integrator:
