@@ -170,6 +170,20 @@ def test_auto_chooses_before_the_first_pass_and_reports_every_material():
     assert "at equal time" in choice.summary() or "no product strategy pays" in choice.summary()
 
 
+@pytest.mark.parametrize("name", ["sh_direct", "sh_path"])
+def test_the_pilot_passes_leave_the_scenes_sample_count_as_it_was(name):
+    """A render with spp=0 uses the sensor's sample count, which the pilots must not change."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})
+    sampler = scene.sensors()[0].sampler()
+    sampler.set_sample_count(3)
+    integrator = mi.load_dict({"type": name, "max_bands": 5})
+    mi.render(scene, integrator=integrator)
+    assert integrator.choice(scene) is not None
+    assert sampler.sample_count() == 3
+
+
 def test_sh_path_unbiased_with_its_automatic_choice():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

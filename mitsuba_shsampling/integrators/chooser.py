@@ -413,5 +413,12 @@ class StrategyChooser:
             dr.sync_thread()
 
         known = self._pass_time if self._scene is scene else None
-        env.choice = choose_strategies(env, sensor, self.n_e, self.n_b, render_pass, known)
+        # A pilot render sets the sensor's sampler to its own sample count: the render that
+        # follows with spp=0 must get the scene's count back.
+        sampler = sensor.sampler()
+        sample_count = sampler.sample_count()
+        try:
+            env.choice = choose_strategies(env, sensor, self.n_e, self.n_b, render_pass, known)
+        finally:
+            sampler.set_sample_count(sample_count)
         self._scene, self._pass_time = scene, env.choice.pass_time
