@@ -65,6 +65,8 @@ class ProductEnvironment:
         self.env_directions = self.env_plain = None
         self.strategies = self.choice = None
         self.strategy_option = options.strategy
+        #: Registry id -> the scene's material (:mod:`~mitsuba_shsampling.scene_materials`).
+        self._materials = {registry_id(m.bsdf): m for m in scene_materials(scene)}
         self.carry_all = carry_all
         self.active = False
         self.needs_emitter_sampling = True
@@ -106,10 +108,9 @@ class ProductEnvironment:
             self.warp = self.warp_plain = ProductWarp(self.pyramid, **warp_options)
             if self.pyramid.mis_compensation:
                 self.warp_plain = ProductWarp(EnvPyramid(self.emitter), **warp_options) if carry_all else None
-        smooth = [m.bsdf for m in scene_materials(scene)
-                  if mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth)]
         first = forced or Strategy.PRODUCT
-        self.strategies = StrategyTable({registry_id(b): self._runnable(registry_id(b), first) for b in smooth})
+        self.strategies = StrategyTable({key: self._runnable(key, first) for key, m in self._materials.items()
+                                         if mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth)})
         self.active = True
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it: every
@@ -146,13 +147,14 @@ class ProductEnvironment:
         return strategy
 
     def _bsdf(self, key: int):
-        return next((m.bsdf for m in scene_materials(self.scene) if registry_id(m.bsdf) == key), None)
+        material = self._materials.get(key)
+        return material.bsdf if material is not None else None
 
     def material_name(self, key: int) -> str:
         """The report name (:mod:`~mitsuba_shsampling.scene_materials`) of the material
         whose BSDF has registry id ``key``."""
-        names = {registry_id(m.bsdf): m.name for m in scene_materials(self.scene)}
-        return names.get(key, f"bsdf#{key}")
+        material = self._materials.get(key)
+        return material.name if material is not None else f"bsdf#{key}"
 
     def drop_product(self) -> None:
         """Trace no product code from now on: materials on a product strategy fall
@@ -337,13 +339,7 @@ class SceneCache:
     @staticmethod
     def _inputs(scene: mi.Scene) -> list:
         """Traversed parameter values of the environment emitter and of each distinct BSDF."""
-        objects = [scene.environment()]
-        seen = set()
-        for shape in scene.shapes():
-            bsdf = shape.bsdf()
-            if bsdf is not None and registry_id(bsdf) not in seen:
-                seen.add(registry_id(bsdf))
-                objects.append(bsdf)
+        objects = [scene.environment()] + [m.bsdf for m in scene_materials(scene)]
         values = []
         for obj in objects:
             if obj is not None:
