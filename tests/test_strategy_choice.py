@@ -17,8 +17,9 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong, window_latlong  # noqa: E402
 from mitsuba_shsampling.integrators import register  # noqa: E402
-from mitsuba_shsampling.integrators.chooser import (LEAN, camera_frames, choose_strategies,  # noqa: E402
-                                                    frame_variances, minimise_error_at_equal_time)
+from mitsuba_shsampling.integrators.chooser import (LEAN, Pilots, camera_frames, choose_strategies,  # noqa: E402
+                                                    film_variance_factor, frame_variances,
+                                                    minimise_error_at_equal_time)
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
 from mitsuba_shsampling.integrators.strategy import Strategy  # noqa: E402
@@ -43,15 +44,15 @@ def registered():
     register()
 
 
-def floor_scene(bsdf: dict, emitter) -> mi.Scene:
+def floor_scene(bsdf: dict, emitter, rfilter: str = "box", size: int = 32) -> mi.Scene:
     """A floor filling the view from above at 45 degrees, lit by ``emitter`` alone (no
     edge in the frame: pixels across an edge add an antialiasing variance that every
-    strategy shares and the prediction leaves out)."""
+    strategy shares and the quadrature leaves out)."""
     return mi.load_dict({
         "type": "scene", "env": emitter,
         "sensor": {"type": "perspective", "fov": 30,
                    "to_world": mi.ScalarTransform4f().look_at(origin=[0, -3, 3], target=[0, 0, 0], up=[0, 0, 1]),
-                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}},
+                   "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": rfilter}},
                    "sampler": {"type": "independent"}},
         "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf}})
 
@@ -59,7 +60,7 @@ def floor_scene(bsdf: dict, emitter) -> mi.Scene:
 def chosen(bsdf: dict, emitter) -> tuple[Strategy, dict]:
     scene = floor_scene(bsdf, emitter)
     env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
-    choice = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pass_time=PASS_TIME)
+    choice = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=Pilots(PASS_TIME))
     (material,) = choice.materials
     return material.strategy, material.variance
 
@@ -104,7 +105,7 @@ def test_the_coordinate_descent_pays_for_time_only_where_the_variance_drops_enou
 def test_materials_where_nothing_pays_leave_the_product_out_of_the_kernel():
     scene = floor_scene({"type": "diffuse"}, SUN)
     env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
-    choice = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pass_time=PASS_TIME)
+    choice = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=Pilots(PASS_TIME))
     assert choice.lean and env.warp is None and env.warp_plain is None
     assert choice.predicted_gain == 1.0
 
@@ -135,6 +136,64 @@ def test_predicted_variance_ratios_match_the_rendered_ones(case):
     for strategy in (P, PO):
         measured, expected = rendered(strategy) / measured_env, predicted[strategy] / predicted[E]
         assert abs(np.log(measured / expected)) < np.log(1.5), (strategy.label, measured, expected)
+
+
+# ------------------------------------------------------------ the pilots and the shared variance
+
+#: A diffuse floor whose albedo alternates 400 times across the view: within a pixel the
+#: texture varies more than the lighting estimate does.
+FINE_CHECKER = {"type": "diffuse", "reflectance": {"type": "checkerboard", "color0": 0.05, "color1": 0.9,
+                                                   "to_uv": mi.ScalarTransform4f().scale([400, 400, 1])}}
+
+
+@pytest.mark.parametrize("rfilter, expected", [("box", 1.0), ("tent", 4 / 9), ("gaussian", 0.319)])
+def test_a_pixels_variance_is_the_samples_over_the_filters_effective_sample_count(rfilter, expected):
+    """sum w f / sum w over spp samples a pixel: sigma^2 (int w^2 / (int w)^2)^2 / spp."""
+    film = mi.load_dict({"type": "hdrfilm", "width": 8, "height": 8, "rfilter": {"type": rfilter}})
+    assert film_variance_factor(film, 4) == pytest.approx(expected / 4, rel=2e-3)
+
+
+@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+def test_the_pilots_run_what_they_time_and_their_images_confirm_the_quadrature(rfilter):
+    """Without texture edges or other light, each pilot's film variance (its images'
+    per-pixel variance over the filter's factor) is what the quadrature predicts,
+    for every strategy, and nothing is shared. (A pilot re-enters the integrator's
+    render through Mitsuba's; it once ran the choice again there, and the
+    product_only pilot ran the product.)"""
+    scene = floor_scene({"type": "diffuse"}, WINDOW, rfilter, size=96)
+    integrator = mi.load_dict({"type": "sh_direct"})
+    mi.render(scene, integrator=integrator, spp=1)
+    choice = integrator.choice(scene)
+    assert set(choice.pilot_variance) == {LEAN, E.label, P.label, PO.label}
+    for name, (predicted, measured) in choice.pilot_variance.items():
+        assert measured == pytest.approx(predicted, rel=0.15), name
+    assert choice.shared_variance < 0.05 * choice.pilot_variance[E.label][1]
+    assert choice.pilot_variance[PO.label][1] < 0.5 * choice.pilot_variance[P.label][1]
+
+
+def test_the_render_after_the_choice_runs_the_chosen_strategy():
+    scene = floor_scene({"type": "diffuse"}, WINDOW)
+    chosen_automatically = mi.load_dict({"type": "sh_direct"})
+    forced = mi.load_dict({"type": "sh_direct", "strategy": "product_only"})
+    image = np.array(mi.render(scene, integrator=chosen_automatically, spp=16, seed=3))
+    assert [m.strategy for m in chosen_automatically.choice(scene).materials] == [PO]
+    assert np.array_equal(image, np.array(mi.render(scene, integrator=forced, spp=16, seed=3)))
+
+
+def test_variance_every_strategy_shares_is_measured_and_weighs_against_the_product():
+    """Under the window a plain diffuse floor gives every sample to the product (above);
+    on a fine checkerboard the texture's variance within each pixel is most of the
+    film's, which the product cannot reduce: its time no longer pays."""
+    scene = floor_scene(FINE_CHECKER, WINDOW, size=96)
+    integrator = mi.load_dict({"type": "sh_direct"})
+    mi.render(scene, integrator=integrator, spp=1)
+    choice = integrator.choice(scene)
+    predicted, measured = choice.pilot_variance[E.label]
+    assert choice.shared_variance > 0.5 * measured
+    assert measured == pytest.approx(predicted, rel=0.15)
+    (material,) = choice.materials
+    assert material.variance[PO] < 0.5 * material.variance[E]  # the lighting estimate alone would pay
+    assert choice.lean and material.strategy in (E, EO)
 
 
 # ------------------------------------------------------------ end to end

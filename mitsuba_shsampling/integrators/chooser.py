@@ -16,7 +16,14 @@ with
   BSDF value x radiance x *visibility* (a shadow ray per direction), so occluded
   skies and windows count as they will in the render.
 - ``V_rest``: the same for the smooth materials without a choice (they run
-  :attr:`Strategy.ENVIRONMENT`);
+  :attr:`Strategy.ENVIRONMENT`), plus ``S``, the variance that no environment
+  strategy changes: antialiasing and texture edges, other emitters, Dirac
+  paths, a path tracer's deeper vertices. It is what the pilot images'
+  variance (:func:`measure_pass_costs`), converted to the quadrature's units
+  (:func:`film_variance_factor`), has beyond the quadrature's prediction for
+  the same passes. Without it the choice is optimistic wherever that shared
+  variance dominates a pixel: a strategy that halves a quarter of the
+  variance buys less than its time.
 - ``P_env`` and ``dP(s)``: the pass time with every material on the
   environment strategy, and the extra time per pixel of material ``m`` on
   strategy ``s``. Both are measured in the scene itself by short pilot passes
@@ -57,6 +64,10 @@ PILOT_LANES = 2**17
 PILOT_REPEATS = 3
 """Timed pilot passes per strategy (interleaved; the median counts)."""
 
+PILOT_SEED = 0x5EED0000
+"""Seed of the first pilot pass; every pilot pass has a seed of its own, so that
+the pilot images of one strategy differ by noise alone."""
+
 REQUIRED_GAIN = 1.05
 """A product strategy must be predicted to beat the lean kernel by this factor at
 equal time: the pilots' pass times scatter by a few per cent, and the lean
@@ -96,10 +107,19 @@ class StrategyChoice:
     """No material runs a product strategy, and the product's code is not traced."""
     seconds: float
     """Time the choice took (frames, quadrature, pilots), spent once per scene."""
+    shared_variance: float = 0.0
+    """``S``: the film's variance that no environment strategy changes (quadrature units:
+    luminance^2 per camera sample, averaged over the film), from the pilot images."""
+    pilot_variance: dict = dataclasses.field(default_factory=dict)
+    """Pilot -> (predicted, measured) film variance of its passes (quadrature units): how well
+    the model, ``S`` included, matches the pilot images (the environment pilots by construction)."""
+    pilots: "Pilots | None" = None
+    """What the pilots measured, reused when the scene's parameters change."""
 
     def as_dict(self) -> dict:
         return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
-                "pass_time_s": dict(self.pass_time),
+                "pass_time_s": dict(self.pass_time), "shared_variance": self.shared_variance,
+                "pilot_variance": {k: {"predicted": p, "measured": m} for k, (p, m) in self.pilot_variance.items()},
                 "materials": [{"name": m.name, "strategy": m.strategy.label, "share": m.share,
                                "predicted_gain": m.predicted_gain,
                                "variance": {s.label: v for s, v in m.variance.items()}}
@@ -116,6 +136,10 @@ def summary_of(choice: dict) -> str:
              for m in choice["materials"] if m["share"] > 0]
     head = ("no product strategy pays: environment strategies only, without product code" if choice["lean"]
             else f"predicted x{choice['predicted_gain']:.2f} at equal time over environment strategies only")
+    environment = choice.get("pilot_variance", {}).get(Strategy.ENVIRONMENT.label)
+    if environment and environment["measured"] > 0:
+        shared = min(choice["shared_variance"] / environment["measured"], 1.0)
+        head += f" ({shared:.0%} of the film's variance shared by every strategy)"
     return f"{head}; " + ", ".join(parts)
 
 
@@ -252,14 +276,57 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
 LEAN = "lean"
 """Pilot key of the kernel without product code (:meth:`ProductEnvironment.drop_product`)."""
 
+LEAN_STRATEGY = Strategy.ENVIRONMENT
+"""What every material runs in the :data:`LEAN` pilot."""
 
-def measure_pass_costs(env, candidates: dict, render_pass: Callable[[], None],
-                       repeats: int = PILOT_REPEATS) -> dict:
-    """Pass time (s) per candidate: ``candidates`` maps a name to the assignment
-    (registry id -> strategy) it is timed with, or to :data:`LEAN` for the kernel
-    without product code; ``render_pass()`` renders and waits. One untimed
-    warm-up pass per kernel, then ``repeats`` rounds, candidates interleaved; the
-    median per candidate. ``env`` is left as it was found."""
+
+@dataclasses.dataclass
+class Pilots:
+    """What the pilot passes measured."""
+
+    pass_time: dict
+    """Pilot -> median pass time (s)."""
+    image_variance: dict = dataclasses.field(default_factory=dict)
+    """Pilot -> per-pixel luminance variance of one pilot pass, averaged over the film
+    (from its pilot images, each with a seed of its own)."""
+    spp: int = 1
+    """Samples per pixel of a pilot pass."""
+    shared_variance: float | None = None
+    """``S`` once derived (:func:`choose_strategies`); kept when the scene's parameters
+    change and only the quadrature is redone."""
+
+
+def film_variance_factor(film: mi.Film, spp: int) -> float:
+    """Variance of a developed pixel per unit variance of one camera sample, at ``spp``.
+
+    A pixel is the filter-weighted mean sum w f / sum w of the samples around it
+    (``spp`` per pixel area), so its variance is sigma^2 int w^2 / (spp (int w)^2):
+    1 / spp for the box filter, about 1 / (3.1 spp) for the Gaussian. Mitsuba's
+    filters are separable, so the 2D ratio is the square of the 1D one."""
+    rfilter = film.rfilter()
+    radius = float(rfilter.radius())
+    x = np.linspace(-radius, radius, 4097)
+    w = np.asarray(rfilter.eval(mi.Float(x.astype(np.float32))).numpy(), dtype=np.float64)
+    ratio = np.mean(w * w) / (np.mean(w) ** 2 * 2 * radius)  # int w^2 / (int w)^2 on the even grid
+    return ratio ** 2 / spp
+
+
+def luminance(image) -> np.ndarray:
+    """Luminance of a developed RGB(A...) image (H, W, C) as float64."""
+    rgb = np.asarray(image, dtype=np.float64)[..., :3]
+    return rgb @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], object],
+                       repeats: int = PILOT_REPEATS, spp: int = 1) -> Pilots:
+    """Pass time (s) and image variance per candidate: ``candidates`` maps a name to
+    the assignment (registry id -> strategy) it runs with, or to :data:`LEAN` for
+    the kernel without product code (every material on the environment strategy);
+    ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
+    One warm-up pass per kernel, then ``repeats`` timed rounds, candidates
+    interleaved; the median time per candidate. Every pass has its own seed and its
+    image counts towards the candidate's variance (warm-ups included: only their
+    time is compile-bound). ``env`` is left as it was found."""
     table = env.strategies
     saved = {key: table.of(key) for key in table.ids}
     warps = env.warp, env.warp_plain
@@ -267,25 +334,32 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[], None],
     def configure(assignment):
         env.warp, env.warp_plain = warps
         if assignment == LEAN:
+            table.assign({key: LEAN_STRATEGY for key in table.ids})
             env.drop_product()
         else:
             table.assign(assignment)
 
     times = {name: [] for name in candidates}
+    images = {name: [] for name in candidates}
+    seed = PILOT_SEED
     try:
-        for assignment in candidates.values():  # compiles each kernel once (the render reuses it)
-            configure(assignment)
-            render_pass()
-        for _ in range(repeats):
+        for round_ in range(repeats + 1):  # round 0 compiles each kernel once (the render reuses it)
             for name, assignment in candidates.items():
                 configure(assignment)
                 start = time.perf_counter()
-                render_pass()
-                times[name].append(time.perf_counter() - start)
+                image = render_pass(seed)
+                elapsed = time.perf_counter() - start
+                seed += 1
+                if round_ > 0:
+                    times[name].append(elapsed)
+                if image is not None:
+                    images[name].append(luminance(image))
     finally:
         env.warp, env.warp_plain = warps
         table.assign(saved)
-    return {name: statistics.median(t) for name, t in times.items()}
+    variance = {name: float(np.mean(np.var(np.stack(i), axis=0, ddof=1)))
+                for name, i in images.items() if len(i) > 1}
+    return Pilots({name: statistics.median(t) for name, t in times.items()}, variance, spp)
 
 
 # ----------------------------------------------------------------- the choice
@@ -317,16 +391,17 @@ def minimise_error_at_equal_time(variance: dict, rest: float, share: dict, base_
     return choice, cost(choice)
 
 
-def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: Callable[[int], None],
-                      pass_time: dict | None = None) -> StrategyChoice:
+def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: Callable[[int, int], object],
+                      pilots: Pilots | None = None) -> StrategyChoice:
     """Choose and assign (``env.strategies``) a strategy for every material; when no
     product strategy pays for the time its code costs every lane, drop the
     product altogether (:meth:`ProductEnvironment.drop_product`).
 
-    ``render_pass(spp)`` renders one pass of the integrator as it is configured;
-    ``pass_time`` (pilot name -> seconds, as :func:`measure_pass_costs` returns)
-    skips the pilots when the costs are known. Without a product to choose, no
-    pilot runs: the environment strategies cost the same.
+    ``render_pass(spp, seed)`` renders one pass of the integrator as it is
+    configured and returns its image; ``pilots`` (as an earlier choice measured
+    them) skips the pilot passes. Pilots without images leave the shared
+    variance ``S`` at 0. Without a product to choose, no pilot runs: the
+    environment strategies cost the same.
     """
     start = time.perf_counter()
     table = env.strategies
@@ -349,20 +424,33 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     cheap = (Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY)
     lean_choice = {k: min((s for s in allowed[k] if s in cheap), key=lambda s: (variance[k][s], s))
                    for k in materials}
-    v_lean = rest + sum(variance[k][s] for k, s in lean_choice.items())
     product_possible = any(s.uses_product for k in materials for s in allowed[k])
 
-    choice, lean, gain = lean_choice, True, 1.0
+    choice, lean, gain, shared, fit = lean_choice, True, 1.0, 0.0, {}
     if product_possible:
-        if pass_time is None:
+        candidates = {LEAN: LEAN, Strategy.ENVIRONMENT.label: {k: Strategy.ENVIRONMENT for k in materials}}
+        for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
+            if any(strategy in allowed[k] for k in materials):
+                candidates[strategy.label] = {k: strategy if strategy in allowed[k] else Strategy.ENVIRONMENT
+                                              for k in materials}
+        if pilots is None:
             film = sensor.film().crop_size()
             spp = max(1, math.ceil(PILOT_LANES / (int(film[0]) * int(film[1]))))
-            candidates = {LEAN: LEAN, Strategy.ENVIRONMENT.label: {k: Strategy.ENVIRONMENT for k in materials}}
-            for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
-                if any(strategy in allowed[k] for k in materials):
-                    candidates[strategy.label] = {k: strategy if strategy in allowed[k] else Strategy.ENVIRONMENT
-                                                  for k in materials}
-            pass_time = measure_pass_costs(env, candidates, lambda: render_pass(spp))
+            pilots = measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp)
+        # The model's film variance of each pilot, and S from the pilots without the
+        # product (whose model is Mitsuba's own strategies): what their images have beyond it.
+        model = {name: rest + sum(variance[k][LEAN_STRATEGY if a == LEAN else a[k]] for k in materials)
+                 for name, a in candidates.items()}
+        factor = film_variance_factor(sensor.film(), pilots.spp)
+        measured = {name: v / factor for name, v in pilots.image_variance.items() if name in model}
+        if pilots.shared_variance is None:
+            residual = [measured[name] - model[name] for name in (LEAN, Strategy.ENVIRONMENT.label)
+                        if name in measured]
+            pilots.shared_variance = max(0.0, float(np.mean(residual))) if residual else 0.0
+        shared = pilots.shared_variance
+        fit = {name: (model[name] + shared, measured[name]) for name in measured}
+
+        pass_time = pilots.pass_time
         base = pass_time[Strategy.ENVIRONMENT.label]
         extra = {s: 0.0 for s in cheap}
         for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
@@ -371,8 +459,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
                 extra[strategy] = max(pass_time[strategy.label] - base, 0.0) / switched if switched > 0 else 0.0
         # Materials no camera ray sees give no evidence: they keep their lean choice.
         seen = {k: v for k, v in variance.items() if share[k] > 0}
-        full_choice, error_full = minimise_error_at_equal_time(seen, rest, share, base, extra)
-        error_lean = v_lean * pass_time[LEAN]
+        full_choice, error_full = minimise_error_at_equal_time(seen, rest + shared, share, base, extra)
+        error_lean = (rest + shared + sum(variance[k][s] for k, s in lean_choice.items())) * pass_time[LEAN]
         if error_full * REQUIRED_GAIN < error_lean and any(s.uses_product for s in full_choice.values()):
             choice, lean, gain = {**lean_choice, **full_choice}, False, error_lean / error_full
     table.assign(choice)
@@ -387,38 +475,48 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         reference = v[lean_choice[key]]
         report.append(MaterialChoice(env.material_name(key), s, share[key], dict(v),
                                      reference / v[s] if v[s] > 0 else 1.0))
-    return StrategyChoice(report, dict(pass_time or {}), gain, lean, time.perf_counter() - start)
+    return StrategyChoice(report, dict(pilots.pass_time) if pilots else {}, gain, lean,
+                          time.perf_counter() - start, shared, fit, pilots)
 
 
 class StrategyChooser:
     """An integrator's chooser: runs :func:`choose_strategies` before the first pass of
-    each scene state whose ``strategy`` is ``auto``. The pilot pass times are
-    measured once per scene and reused when only its parameters change (an
-    optimisation loop rebuilds the state at every step)."""
+    each scene state whose ``strategy`` is ``auto``. The pilots (pass times and the
+    shared variance) are measured once per scene and reused when only its
+    parameters change (an optimisation loop rebuilds the state at every step)."""
 
     def __init__(self, emitter_samples: int, bsdf_samples: int):
         self.n_e, self.n_b = emitter_samples, bsdf_samples
-        self._scene, self._pass_time = None, None
+        self._scene, self._pilots = None, None
+        #: A pilot pass is running. Mitsuba's ``render``, called by a pilot from inside the
+        #: integrator's Python ``render``, dispatches to that ``render`` again: the
+        #: integrator must then render as configured, without choosing (a nested choice
+        #: would see the pilot's configuration, and the pilots would not run what they time).
+        self.piloting = False
 
     def before_render(self, env, scene: mi.Scene, sensor, render: Callable) -> None:
-        """Choose for ``env`` if it awaits a choice. ``render(spp)`` returns one
+        """Choose for ``env`` if it awaits a choice. ``render(spp, seed)`` returns one
         pass's image with the integrator as it is (the pilots)."""
         if not env.awaits_choice:
             return
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
 
-        def render_pass(spp: int) -> None:
-            dr.eval(render(spp))
+        def render_pass(spp: int, seed: int):
+            image = render(spp, seed)
+            dr.eval(image)
             dr.sync_thread()
+            return image
 
-        known = self._pass_time if self._scene is scene else None
+        known = self._pilots if self._scene is scene else None
         # A pilot render sets the sensor's sampler to its own sample count: the render that
         # follows with spp=0 must get the scene's count back.
         sampler = sensor.sampler()
         sample_count = sampler.sample_count()
+        self.piloting = True
         try:
             env.choice = choose_strategies(env, sensor, self.n_e, self.n_b, render_pass, known)
         finally:
+            self.piloting = False
             sampler.set_sample_count(sample_count)
-        self._scene, self._pass_time = scene, env.choice.pass_time
+        self._scene, self._pilots = scene, env.choice.pilots

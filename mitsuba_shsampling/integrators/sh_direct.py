@@ -63,9 +63,13 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         self.chooser = StrategyChooser(options.emitter_samples, options.bsdf_samples)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting): render as configured
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
         env = self.scenes.get(scene)  # build host-side state before tracing the pass
-        self.chooser.before_render(env, scene, sensor,
-                                   lambda pilot_spp: super(SHDirectIntegrator, self).render(scene, sensor, seed, pilot_spp))
+        def pilot_pass(pilot_spp, pilot_seed):
+            return super(SHDirectIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
+
+        self.chooser.before_render(env, scene, sensor, pilot_pass)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def choice(self, scene):

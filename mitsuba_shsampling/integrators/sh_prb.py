@@ -99,12 +99,16 @@ class SHPRBIntegrator(RBIntegrator):
     # pass themselves, and the traced passes take it as it is.
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting): render as configured
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
         stale_ok = self._renders_since_build + 1 < self.options.rebuild_interval
         state = self.scenes.get(scene, stale_ok=stale_ok)
         self._renders_since_build = 0 if state is not self._state else self._renders_since_build + 1
         self._state = state
-        self.chooser.before_render(state, scene, sensor,
-                                   lambda pilot_spp: super(SHPRBIntegrator, self).render(scene, sensor, seed, pilot_spp))
+        def pilot_pass(pilot_spp, pilot_seed):
+            return super(SHPRBIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
+
+        self.chooser.before_render(state, scene, sensor, pilot_pass)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def choice(self, scene):
