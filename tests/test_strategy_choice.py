@@ -169,6 +169,23 @@ def test_the_pilots_run_what_they_time_and_their_images_confirm_the_quadrature(r
         assert measured == pytest.approx(predicted, rel=0.15), name
     assert choice.shared_variance < 0.05 * choice.pilot_variance[E.label][1]
     assert choice.pilot_variance[PO.label][1] < 0.5 * choice.pilot_variance[P.label][1]
+    # So the pilots leave the quadrature's variances nearly as they were.
+    assert all(0.85 < factor < 1.15 for factor in choice.pilots.calibration.values())
+
+
+def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_measured():
+    """Pilot images that show the product at twice the quadrature's variance (and the
+    environment as predicted, nothing shared) double the product's predicted variances."""
+    from mitsuba_shsampling.integrators.chooser import calibrate
+    variance = {1: {E: 4.0, P: 1.0}, 2: {E: 2.0, P: 2.0}}
+    candidates = {E.label: {1: E, 2: E}, P.label: {1: P, 2: E}}
+    model = {E.label: 0.5 + 6.0, P.label: 0.5 + 1.0 + 2.0}
+    pilots = Pilots({}, spp=1)
+    calibrate(pilots, {E.label: 6.5, P.label: 0.5 + 2.0 * 1.0 + 2.0}, model, candidates, variance, rest=0.5)
+    assert pilots.shared_variance == 0.0 and pilots.calibration == {P: pytest.approx(2.0)}
+    # A film that measures more than the environment's quadrature: the excess is shared.
+    calibrate(pilots, {E.label: 9.5, P.label: 3.0 + 0.5 + 1.0 + 2.0}, model, candidates, variance, rest=0.5)
+    assert pilots.shared_variance == pytest.approx(3.0) and pilots.calibration == {P: pytest.approx(1.0)}
 
 
 def test_the_render_after_the_choice_runs_the_chosen_strategy():

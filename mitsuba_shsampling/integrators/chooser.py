@@ -23,7 +23,9 @@ with
   (:func:`film_variance_factor`), has beyond the quadrature's prediction for
   the same passes. Without it the choice is optimistic wherever that shared
   variance dominates a pixel: a strategy that halves a quarter of the
-  variance buys less than its time.
+  variance buys less than its time. The product pilots' images also scale
+  each product strategy's quadrature variances to what they measured
+  (:func:`calibrate`).
 - ``P_env`` and ``dP(s)``: the pass time with every material on the
   environment strategy, and the extra time per pixel of material ``m`` on
   strategy ``s``. Both are measured in the scene itself by short pilot passes
@@ -41,7 +43,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import statistics
 import time
 from typing import Callable
 
@@ -61,8 +62,9 @@ DIRECTIONS = 64
 PILOT_LANES = 2**17
 """Camera samples per pilot pass (spp is rounded up so that the film gets at least this many)."""
 
-PILOT_REPEATS = 3
-"""Timed pilot passes per strategy (interleaved; the median counts)."""
+PILOT_REPEATS = 4
+"""Timed pilot passes per strategy (interleaved; the fastest counts: whatever else
+runs on the machine only ever adds time, and adds it to one pass, not to a strategy)."""
 
 PILOT_SEED = 0x5EED0000
 """Seed of the first pilot pass; every pilot pass has a seed of its own, so that
@@ -84,7 +86,8 @@ class MaterialChoice:
     share: float
     """Share of the film's camera samples that see it."""
     variance: dict
-    """Strategy -> predicted variance it adds to the film (luminance^2, summed over its pixels)."""
+    """Strategy -> predicted variance it adds to the film (luminance^2 per camera sample,
+    over the film; calibrated by the pilots where they ran)."""
     predicted_gain: float
     """Predicted variance of the material's best environment strategy over that of the
     chosen one, at equal samples (1 where an environment strategy is chosen)."""
@@ -112,13 +115,15 @@ class StrategyChoice:
     luminance^2 per camera sample, averaged over the film), from the pilot images."""
     pilot_variance: dict = dataclasses.field(default_factory=dict)
     """Pilot -> (predicted, measured) film variance of its passes (quadrature units): how well
-    the model, ``S`` included, matches the pilot images (the environment pilots by construction)."""
+    the quadrature, before calibration and with ``S``, matches the pilot images (the
+    environment pilots by construction)."""
     pilots: "Pilots | None" = None
     """What the pilots measured, reused when the scene's parameters change."""
 
     def as_dict(self) -> dict:
         return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
                 "pass_time_s": dict(self.pass_time), "shared_variance": self.shared_variance,
+                "calibration": {s.label: f for s, f in (self.pilots.calibration if self.pilots else {}).items()},
                 "pilot_variance": {k: {"predicted": p, "measured": m} for k, (p, m) in self.pilot_variance.items()},
                 "materials": [{"name": m.name, "strategy": m.strategy.label, "share": m.share,
                                "predicted_gain": m.predicted_gain,
@@ -285,15 +290,18 @@ class Pilots:
     """What the pilot passes measured."""
 
     pass_time: dict
-    """Pilot -> median pass time (s)."""
+    """Pilot -> pass time (s), the fastest of the timed passes."""
     image_variance: dict = dataclasses.field(default_factory=dict)
     """Pilot -> per-pixel luminance variance of one pilot pass, averaged over the film
     (from its pilot images, each with a seed of its own)."""
     spp: int = 1
     """Samples per pixel of a pilot pass."""
     shared_variance: float | None = None
-    """``S`` once derived (:func:`choose_strategies`); kept when the scene's parameters
-    change and only the quadrature is redone."""
+    """``S`` once derived (:func:`calibrate`); kept when the scene's parameters change
+    and only the quadrature is redone."""
+    calibration: dict = dataclasses.field(default_factory=dict)
+    """Strategy -> factor on its quadrature variances that makes its pilot's prediction
+    match the pilot's images (:func:`calibrate`); 1 where missing."""
 
 
 def film_variance_factor(film: mi.Film, spp: int) -> float:
@@ -324,7 +332,7 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
     the kernel without product code (every material on the environment strategy);
     ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
     One warm-up pass per kernel, then ``repeats`` timed rounds, candidates
-    interleaved; the median time per candidate. Every pass has its own seed and its
+    interleaved; the fastest time per candidate. Every pass has its own seed and its
     image counts towards the candidate's variance (warm-ups included: only their
     time is compile-bound). ``env`` is left as it was found."""
     table = env.strategies
@@ -359,7 +367,50 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
         table.assign(saved)
     variance = {name: float(np.mean(np.var(np.stack(i), axis=0, ddof=1)))
                 for name, i in images.items() if len(i) > 1}
-    return Pilots({name: statistics.median(t) for name, t in times.items()}, variance, spp)
+    return Pilots({name: min(t) for name, t in times.items()}, variance, spp)
+
+
+CALIBRATION_RANGE = (0.5, 4.0)
+"""Bounds of a strategy's calibration factor: the pilot images are few (their
+variance has its own noise, heavy-tailed where rare paths are), so they correct
+the quadrature, but do not replace it."""
+
+
+def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, variance: dict,
+              rest: float) -> None:
+    """Set ``pilots.shared_variance`` and ``pilots.calibration`` from the pilots' film
+    variances (``measured``, quadrature units) against the quadrature's (``model``).
+
+    - ``S``: what the pilots without the product (the environment strategy, whose
+      quadrature is of Mitsuba's own sampling) have beyond the quadrature.
+      Where they have less (the quadrature's own noise under a sun), ``S`` is 0 and
+      the environment strategies' variances are scaled down to them instead.
+    - Each product strategy's pilot (every material that can run it on it, the
+      others on the environment strategy) then fixes a factor on that strategy's
+      variances: the pilot's measured variance, less ``S`` and the other
+      materials' part, over the quadrature's part, within :data:`CALIBRATION_RANGE`.
+    """
+    environment = [name for name in (LEAN, Strategy.ENVIRONMENT.label) if name in measured]
+    pilots.shared_variance, pilots.calibration = 0.0, {}
+    if not environment:
+        return
+    measured_env = float(np.mean([measured[name] for name in environment]))
+    model_env = model[Strategy.ENVIRONMENT.label]
+    pilots.shared_variance = max(0.0, measured_env - model_env)
+    if measured_env < model_env:
+        scale = max(measured_env / model_env, CALIBRATION_RANGE[0])
+        pilots.calibration = {Strategy.ENVIRONMENT: scale, Strategy.ENVIRONMENT_ONLY: scale}
+    environment_scale = pilots.calibration.get(Strategy.ENVIRONMENT, 1.0)
+    for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
+        assignment = candidates.get(strategy.label)
+        if assignment is None or strategy.label not in measured:
+            continue
+        own = sum(variance[k][strategy] for k, s in assignment.items() if s == strategy)
+        others = rest + sum(variance[k][s] for k, s in assignment.items() if s != strategy)
+        if own <= 1e-3 * model[strategy.label]:
+            continue  # the strategy barely shows in its pilot
+        observed = measured[strategy.label] - pilots.shared_variance - others * environment_scale
+        pilots.calibration[strategy] = float(np.clip(observed / own, *CALIBRATION_RANGE))
 
 
 # ----------------------------------------------------------------- the choice
@@ -437,18 +488,19 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
             film = sensor.film().crop_size()
             spp = max(1, math.ceil(PILOT_LANES / (int(film[0]) * int(film[1]))))
             pilots = measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp)
-        # The model's film variance of each pilot, and S from the pilots without the
-        # product (whose model is Mitsuba's own strategies): what their images have beyond it.
+        # The model's film variance of each pilot, against its images.
         model = {name: rest + sum(variance[k][LEAN_STRATEGY if a == LEAN else a[k]] for k in materials)
                  for name, a in candidates.items()}
         factor = film_variance_factor(sensor.film(), pilots.spp)
         measured = {name: v / factor for name, v in pilots.image_variance.items() if name in model}
         if pilots.shared_variance is None:
-            residual = [measured[name] - model[name] for name in (LEAN, Strategy.ENVIRONMENT.label)
-                        if name in measured]
-            pilots.shared_variance = max(0.0, float(np.mean(residual))) if residual else 0.0
+            calibrate(pilots, measured, model, candidates, variance, rest)
         shared = pilots.shared_variance
         fit = {name: (model[name] + shared, measured[name]) for name in measured}
+        variance = {k: {s: v * pilots.calibration.get(s, 1.0) for s, v in row.items()} for k, row in variance.items()}
+        rest *= pilots.calibration.get(Strategy.ENVIRONMENT, 1.0)
+        lean_choice = {k: min((s for s in allowed[k] if s in cheap), key=lambda s: (variance[k][s], s))
+                       for k in materials}
 
         pass_time = pilots.pass_time
         base = pass_time[Strategy.ENVIRONMENT.label]
