@@ -67,8 +67,10 @@ PILOT_REPEATS = 4
 runs on the machine only ever adds time, and adds it to one pass, not to a strategy)."""
 
 PILOT_SEED = 0x5EED0000
-"""Seed of the first pilot pass; every pilot pass has a seed of its own, so that
-the pilot images of one strategy differ by noise alone."""
+"""Seed of the first round of pilot passes. The passes of one round share a seed and
+the rounds differ: every strategy draws the same sampler dimensions, so within a round
+the camera rays, the BSDF samples and the rare paths (a glass block's caustic) are
+common to all pilots, and their variance cancels where the pilots are compared."""
 
 REQUIRED_GAIN = 1.05
 """A product strategy must be predicted to beat the lean kernel by this factor at
@@ -293,7 +295,7 @@ class Pilots:
     """Pilot -> pass time (s), the fastest of the timed passes."""
     image_variance: dict = dataclasses.field(default_factory=dict)
     """Pilot -> per-pixel luminance variance of one pilot pass, averaged over the film
-    (from its pilot images, each with a seed of its own)."""
+    (from its pilot images, one per round of pilots)."""
     spp: int = 1
     """Samples per pixel of a pilot pass."""
     shared_variance: float | None = None
@@ -332,9 +334,10 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
     the kernel without product code (every material on the environment strategy);
     ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
     One warm-up pass per kernel, then ``repeats`` timed rounds, candidates
-    interleaved; the fastest time per candidate. Every pass has its own seed and its
-    image counts towards the candidate's variance (warm-ups included: only their
-    time is compile-bound). ``env`` is left as it was found."""
+    interleaved; the fastest time per candidate. Every round has its own seed
+    (:data:`PILOT_SEED`), and each pass's image counts towards its candidate's
+    variance (warm-ups included: only their time is compile-bound). ``env`` is
+    left as it was found."""
     table = env.strategies
     saved = {key: table.of(key) for key in table.ids}
     warps = env.warp, env.warp_plain
@@ -349,15 +352,13 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
 
     times = {name: [] for name in candidates}
     images = {name: [] for name in candidates}
-    seed = PILOT_SEED
     try:
         for round_ in range(repeats + 1):  # round 0 compiles each kernel once (the render reuses it)
             for name, assignment in candidates.items():
                 configure(assignment)
                 start = time.perf_counter()
-                image = render_pass(seed)
+                image = render_pass(PILOT_SEED + round_)
                 elapsed = time.perf_counter() - start
-                seed += 1
                 if round_ > 0:
                     times[name].append(elapsed)
                 if image is not None:
