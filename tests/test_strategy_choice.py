@@ -188,6 +188,21 @@ def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_meas
     assert pilots.shared_variance == pytest.approx(3.0) and pilots.calibration == {P: pytest.approx(1.0)}
 
 
+def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():
+    """Common random numbers: what the strategies share cancels where pilots are compared."""
+    from mitsuba_shsampling.integrators.chooser import measure_pass_costs
+    scene = floor_scene({"type": "diffuse"}, WINDOW)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    (key,) = env.strategies.ids
+    seeds = []
+    pilots = measure_pass_costs(env, {LEAN: LEAN, E.label: {key: E}, P.label: {key: P}},
+                                lambda seed: seeds.append(seed), repeats=3)
+    rounds = [seeds[i:i + 3] for i in range(0, len(seeds), 3)]
+    assert len(rounds) == 4 and all(len(set(r)) == 1 for r in rounds) and len({r[0] for r in rounds}) == 4
+    assert set(pilots.pass_time) == {LEAN, E.label, P.label} and pilots.image_variance == {}
+    assert env.warp is not None and env.strategies.of(key) == P  # left as it was found
+
+
 def test_the_render_after_the_choice_runs_the_chosen_strategy():
     scene = floor_scene({"type": "diffuse"}, WINDOW)
     chosen_automatically = mi.load_dict({"type": "sh_direct"})
