@@ -183,25 +183,42 @@ def walk_pdf(provider: QuadWeights, depth: int, z, phi):
 
 # --------------------------------------------------------------- binary tree
 
+def _lower_probability(w_lo, w_hi):
+    """Probability of the lower half of a binary split with weights clamped
+    at 0 (NaN to 0), and whether the weights' total is finite.
+
+    Where both weights vanish the probability is NaN, and so becomes the
+    product of a walk through that split: the walks test the product once at
+    the end instead of the total at every level. The upper half's probability
+    is 1 - p_lo, which is exactly the share of samples u >= p_lo goes to.
+    """
+    w_lo = dr.select(w_lo > 0, w_lo, 0.0)
+    total = w_lo + dr.select(w_hi > 0, w_hi, 0.0)
+    return w_lo / total, total < dr.inf
+
+
 def walk_sample_1d(provider: BinaryWeights, depth: int, u, x0: float, x1: float):
     """Binary-tree version of :func:`walk_sample` over the interval [x0, x1].
 
     Returns (leaf index, rescaled sample, leaf probability, valid mask,
     provider state at the leaf); leaf i covers [x0 + i w, x0 + (i+1) w],
-    w = (x1 - x0) / 2^depth.
+    w = (x1 - x0) / 2^depth. The probability underflows to 0 (an invalid
+    sample, with pdf 0 in :func:`walk_pdf_1d` too) only below 1e-38.
     """
     index, prob, valid = mi.UInt32(0), mi.Float(1.0), mi.Bool(True)
     u = dr.clip(u, 0.0, LAST_BELOW_ONE)
     state = provider.root()
     for level in range(depth):
         split = provider.children(state, level, *interval(level, index, x0, x1))
-        (w_lo, w_hi), _, _ = _normalised_weights(split.weights)
-        upper, p, u, ok = _choose_half(w_lo, w_hi, u)
+        p_lo, finite = _lower_probability(*split.weights)
+        upper = u >= p_lo
+        p = dr.select(upper, 1.0 - p_lo, p_lo)
+        u = dr.minimum((u - dr.select(upper, p_lo, 0.0)) / p, LAST_BELOW_ONE)
         prob *= p
-        valid &= ok
+        valid &= finite
         state = provider.advance(state, split.pending, level, upper)
         index = 2 * index + dr.select(upper, 1, 0)
-    return index, u, prob, valid, state
+    return index, u, prob, valid & (prob > 0), state
 
 
 def walk_pdf_1d(provider: BinaryWeights, depth: int, x, x0: float, x1: float):
@@ -214,12 +231,12 @@ def walk_pdf_1d(provider: BinaryWeights, depth: int, x, x0: float, x1: float):
     for level in range(depth):
         lo, mid, hi = interval(level, index, x0, x1)
         split = provider.children(state, level, lo, mid, hi)
-        (w_lo, w_hi), total, ok = _normalised_weights(split.weights)
+        p_lo, finite = _lower_probability(*split.weights)
         upper = x >= mid
-        prob *= dr.select(ok, dr.select(upper, w_hi, w_lo) / dr.select(ok, total, 1.0), 0.0)
+        prob *= dr.select(finite, dr.select(upper, 1.0 - p_lo, p_lo), 0.0)
         state = provider.advance(state, split.pending, level, upper)
         index = 2 * index + dr.select(upper, 1, 0)
-    return index, prob, state
+    return index, dr.select(prob > 0, prob, 0.0), state
 
 
 # ------------------------------------------------ additive pyramid, telescoped
