@@ -6,8 +6,9 @@ splits in a different order:
 
 1. ``depth`` binary splits in z of full-azimuth strips [z0, z1] x [0, 2 pi).
    Over the full circle every m != 0 term integrates to 0, so a strip's
-   integral needs only the zonal coefficients f_l^0 and the m = 0
-   antiderivatives: O(n) work per level (quadtree: O(n^2)).
+   integral is G(z1) - G(z0) for one polynomial G of the zonal coefficients
+   f_l^0, built once per lane; a split evaluates G once, 2 (n + 1)
+   multiply-adds (quadtree: O(n^2) per level).
 2. One z-contraction A[m] for the chosen strip (two antiderivative rows and
    n^2 multiply-adds), then ``depth`` binary splits in phi of that strip:
    each half's integral is sum_m A[m] Phi_m, O(n) per level with the phi
@@ -35,8 +36,8 @@ import mitsuba as mi
 
 from ..grid import TWO_PI, Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of, sh_index
-from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives,
-                            phi_integrals_centred, z_integrals, zonal_antiderivatives)
+from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives, monic_legendre_series,
+                            phi_integrals_centred, strip_antiderivative_series, z_integrals)
 from .hierarchy import Split, check_depth, check_leaf, leaf_density, sample_leaf, walk_pdf_1d, walk_sample_1d
 from .hsw import sh_leaf_corners
 
@@ -47,15 +48,15 @@ a little more time, while the bilinear leaf gained little for much more time
 
 
 class StripState(NamedTuple):
-    """:class:`ZonalStripWeights` state: the zonal antiderivative row at the
-    strip's lower bound, and the strip's signed integral."""
+    """:class:`ZonalStripWeights` state: G (see below) at the strip's lower
+    bound, and the strip's signed integral."""
 
-    f_lo: list
+    g_lo: mi.Float
     total: mi.Float
 
 
 class StripSplit(NamedTuple):
-    f_mid: list
+    g_mid: mi.Float
     lower: mi.Float
     upper: mi.Float
 
@@ -63,33 +64,30 @@ class StripSplit(NamedTuple):
 class ZonalStripWeights:
     """1D weight provider over z: integrals of f over full-azimuth strips.
 
-    State (:class:`StripState`): the zonal antiderivative row at the strip's
-    lower bound and the strip's signed integral (the upper half is the strip
-    minus the lower half).
+    A strip's integral is G(z1) - G(z0) for one polynomial G per lane
+    (:func:`~mitsuba_shsampling.sh.integrals.strip_antiderivative_series`,
+    built once from the zonal coefficients), so a split costs one evaluation
+    of G at the midpoint. State (:class:`StripState`): G at the strip's lower
+    bound and the strip's signed integral (the upper half is the strip minus
+    the lower half).
     """
 
     def __init__(self, coeffs: list):
-        self.order = bands_of(coeffs) - 1
-        self.zonal = [coeffs[sh_index(l, 0)] for l in range(self.order + 1)]
-
-    def _strip_integral(self, f_lo: list, f_hi: list):
-        acc = self.zonal[0] * (f_hi[0] - f_lo[0])
-        for c, a, b in zip(self.zonal[1:], f_lo[1:], f_hi[1:]):
-            acc = dr.fma(c, b - a, acc)
-        return TWO_PI * acc
+        order = bands_of(coeffs) - 1
+        self.series = strip_antiderivative_series([coeffs[sh_index(l, 0)] for l in range(order + 1)])
 
     def root(self) -> StripState:
-        lo, hi = zonal_antiderivatives(-1.0, self.order), zonal_antiderivatives(1.0, self.order)
-        return StripState([mi.Float(v) for v in lo], self._strip_integral(lo, hi))
+        g_lo = monic_legendre_series(self.series, -1.0)
+        return StripState(g_lo, monic_legendre_series(self.series, 1.0) - g_lo)
 
     def children(self, state: StripState, level, z0, zm, z1) -> Split:
-        f_mid = zonal_antiderivatives(zm, self.order)
-        lower = self._strip_integral(state.f_lo, f_mid)
+        g_mid = monic_legendre_series(self.series, zm)
+        lower = g_mid - state.g_lo
         upper = state.total - lower
-        return Split((lower, upper), StripSplit(f_mid, lower, upper))
+        return Split((lower, upper), StripSplit(g_mid, lower, upper))
 
     def advance(self, state: StripState, pending: StripSplit, level, upper) -> StripState:
-        return StripState([dr.select(upper, m, l) for l, m in zip(state.f_lo, pending.f_mid)],
+        return StripState(dr.select(upper, pending.g_mid, state.g_lo),
                           dr.select(upper, pending.upper, pending.lower))
 
 
