@@ -143,11 +143,22 @@ def contract_z(coeffs: list, zint: dict, order: int) -> list:
 
 
 def contract_phi(a: list, phi: list):
-    """sum over m of A[m] * Phi_m (both indexed m + order)."""
-    acc = a[0] * phi[0]
-    for am, pm in zip(a[1:], phi[1:]):
-        acc = dr.fma(am, pm, acc)
-    return acc
+    """sum over m of A[m] * Phi_m (both indexed m + order).
+
+    Summed from m = 0 outwards, the order in which the recurrences of
+    :func:`phi_integrals` produce Phi_m, into four accumulators: the
+    hierarchical walks wait for this sum at every level, and one accumulator
+    run from m = -order would be a chain of 2 order + 1 dependent
+    multiply-adds that could only start after the last Phi_m.
+    """
+    order = len(a) // 2
+    outwards = [order] + [order + sign * m for m in range(1, order + 1) for sign in (1, -1)]
+    sums = [a[i] * phi[i] for i in outwards[:4]]
+    for j, i in enumerate(outwards[4:]):
+        sums[j % 4] = dr.fma(a[i], phi[i], sums[j % 4])
+    while len(sums) > 1:
+        sums = [x + y for x, y in zip(sums[::2], sums[1::2])] + sums[len(sums) - len(sums) % 2:]
+    return sums[0]
 
 
 def cell_integrals(z0, z1, phi0, phi1, order: int, precise: bool = False) -> list:
@@ -227,12 +238,19 @@ def strip_antiderivative_series(zonal: list) -> list:
 
 
 def monic_legendre_series(series: list, z):
-    """sum_k series[k] Pm_k(z) over the monic Legendre polynomials, by
-    Clenshaw's recurrence (2 multiply-adds per term, no P_k formed)."""
-    b1, b2 = series[-1], 0.0
-    for k in range(len(series) - 2, -1, -1):
-        b1, b2 = dr.fma(-_monic_legendre_gamma(k + 1), b2, dr.fma(z, b1, series[k])), b1
-    return b1
+    """sum_k series[k] Pm_k(z) over the monic Legendre polynomials.
+
+    The Pm_k come from their forward recurrence (stable on [-1, 1]) and the
+    sum is split in two accumulators: the only dependent chain is the
+    recurrence, one multiply-add per term, which the hierarchical walks wait
+    for at every level (Clenshaw's backward sum has two per term).
+    """
+    p_prev, p = 1.0, z
+    sums = [series[0], series[1] * z]
+    for k in range(1, len(series) - 1):
+        p_prev, p = p, dr.fma(z, p, -_monic_legendre_gamma(k) * p_prev)
+        sums[(k + 1) % 2] = dr.fma(series[k + 1], p, sums[(k + 1) % 2])
+    return sums[0] + sums[1]
 
 
 def phi_integrals_centred(cos_c, sin_c, half_width: float, order: int) -> list:
