@@ -115,9 +115,12 @@ def _split_sample(w_lo, w_hi, u):
     every level.
     """
     total = w_lo + w_hi
+    # The next level waits for the choice, not for the division: compare
+    # u * total with w_lo. Where rounding makes it disagree with u >= p_lo,
+    # the clip keeps the rescaled sample in [0, 1).
+    upper = u * total >= w_lo
     p_lo = w_lo / total
-    upper = u >= p_lo
-    u = dr.minimum((u - dr.select(upper, p_lo, 0.0)) / dr.select(upper, 1.0 - p_lo, p_lo), LAST_BELOW_ONE)
+    u = dr.clip((u - dr.select(upper, p_lo, 0.0)) / dr.select(upper, 1.0 - p_lo, p_lo), 0.0, LAST_BELOW_ONE)
     # The chosen weight over the total, not 1 - p_lo for the upper half: that
     # keeps a small upper half's digits (1 - p_lo is off by up to 3e-8
     # absolute), and the product warp's chi-square test on a map with a 1e5
@@ -203,12 +206,19 @@ def walk_sample_1d(provider: BinaryWeights, depth: int, u, x0: float, x1: float)
     index, prob, valid = mi.UInt32(0), mi.Float(1.0), mi.Bool(True)
     u = dr.clip(u, 0.0, LAST_BELOW_ONE)
     state = provider.root()
+    # The cell's lower bound is carried (a select and an add after each
+    # choice) rather than rebuilt from the index (a conversion and a
+    # multiply-add): the next level's weights wait for it.
+    lo = x0
     for level in range(depth):
-        split = provider.children(state, level, *interval(level, index, x0, x1))
+        half = (x1 - x0) / 2 ** (level + 1)
+        mid = lo + half
+        split = provider.children(state, level, lo, mid, mid + half)
         upper, p, u, finite = _split_sample(*(_clamped(w) for w in split.weights), u)
         prob *= p
         valid &= finite
         state = provider.advance(state, split.pending, level, upper)
+        lo = dr.select(upper, mid, lo)
         index = 2 * index + dr.select(upper, 1, 0)
     return index, u, prob, valid & (prob > 0), state
 
