@@ -179,7 +179,7 @@ class SHStripWarp:
         leaf = Cell(self.depth, iz, iphi)
         z, phi, density = sample_leaf(self.leaf, leaf, mi.Point2f(t_z, t_phi), sh_leaf_corners(coeffs))
         valid = valid_z & valid_phi
-        d = dr.select(valid, grid_direction(z, phi), mi.warp.square_to_uniform_sphere(u))
+        d = dr.select(valid, grid_direction(z, phi), mi.Vector3f(0.0, 0.0, 1.0))
         return d, dr.select(valid, p_z * p_phi * density / leaf.area, 0.0)
 
     def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:
