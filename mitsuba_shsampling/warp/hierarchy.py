@@ -115,18 +115,21 @@ def _split_sample(w_lo, w_hi, u):
     every level.
     """
     total = w_lo + w_hi
-    # The next level waits for the choice, not for the division: compare
-    # u * total with w_lo. Where rounding makes it disagree with u >= p_lo,
-    # the clip keeps the rescaled sample in [0, 1).
-    upper = u * total >= w_lo
-    p_lo = w_lo / total
-    u = dr.clip((u - dr.select(upper, p_lo, 0.0)) / dr.select(upper, 1.0 - p_lo, p_lo), 0.0, LAST_BELOW_ONE)
+    # In units of weight: u * total is the sample's position in [0, total).
+    # The next level waits for the choice, which then needs no division, and
+    # the rescaled sample (position - lower bound) / chosen weight is
+    # (u - p_lo) / p_chosen with one division instead of two. Rounding can
+    # put it a hair outside [0, 1): the clip keeps it in.
+    position = u * total
+    upper = position >= w_lo
+    chosen = dr.select(upper, w_hi, w_lo)
+    u = dr.clip((position - dr.select(upper, w_lo, 0.0)) / chosen, 0.0, LAST_BELOW_ONE)
     # The chosen weight over the total, not 1 - p_lo for the upper half: that
     # keeps a small upper half's digits (1 - p_lo is off by up to 3e-8
     # absolute), and the product warp's chi-square test on a map with a 1e5
     # sun rejected 1 - p_lo more often (p-values 0.0009-0.012 over 8 seeds,
     # 0.0006-0.054 with this).
-    return upper, dr.select(upper, w_hi, w_lo) / total, u, total < dr.inf
+    return upper, chosen / total, u, total < dr.inf
 
 
 def _split_probability(w_lo, w_hi, upper):
