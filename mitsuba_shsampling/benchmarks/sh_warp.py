@@ -3,7 +3,9 @@
 Each of 2^20 lanes (``--lanes``) carries its own Phong lobe (exponent
 ``--exponent``, default 20) turned to a random axis; its SH coefficients are
 computed in the same kernel as the warp (as a renderer would do per shading
-point), so the figures include that cost. Timings are warm (the kernel is
+point), so the figures include that cost; the coefficients alone (summed per
+lane, so that n^2 floats per lane are not written out) are timed too, to tell
+the warp's share. Timings are warm (the kernel is
 compiled and run once first) and the best of ``--repeats`` runs with fresh
 random inputs. Mitsuba's own ``envmap`` ``sample_direction`` (on the built-in
 sun-and-sky map) is timed in the same process as a yardstick.
@@ -44,7 +46,8 @@ FULL_SWEEP = [(w, leaf, n, d) for n in (3, 5, 10, 15, 20)
                                       ("strip", "uniform", (8, 10, 12)),
                                       ("strip", "bilinear", (6, 8, 10)))
               for d in depths]
-QUICK_SWEEP = [("strip", "uniform", 5, 12), ("strip", "uniform", 20, 12), ("quadtree", "uniform", 5, 6)]
+QUICK_SWEEP = [("strip", "uniform", 5, 6), ("strip", "uniform", 5, 12), ("strip", "uniform", 20, 12),
+               ("quadtree", "uniform", 5, 6)]
 
 
 def _random_inputs(lanes: int, seed: int):
@@ -87,6 +90,7 @@ def measure(warp_name: str, leaf: str, n_bands: int, depth: int, exponent: float
         return warp.sample(zonal_to_sh(attenuation, axis), u)
 
     seconds = _best_time(run_once, lanes, repeats)
+    coefficient_seconds = _best_time(lambda axis, u: sum(zonal_to_sh(attenuation, axis)), lanes, repeats)
 
     # Fidelity on a quarter of the lanes (same kernel shape, extra evaluation).
     axis, u = _random_inputs(max(lanes // 4, 1), seed=7)
@@ -97,6 +101,7 @@ def measure(warp_name: str, leaf: str, n_bands: int, depth: int, exponent: float
     keep = t > 0
     return dict(warp=warp_name, leaf=leaf, bands=n_bands, coefficients=n_bands**2, depth=depth,
                 exponent=exponent, lanes=lanes, seconds=seconds, msamples_per_s=lanes / seconds / 1e6,
+                coefficients_msamples_per_s=lanes / coefficient_seconds / 1e6,
                 mean_rel_pdf_error=float(np.mean(np.abs(p[keep] - t[keep]) / t[keep])),
                 load_average=os.getloadavg()[0])
 
@@ -119,13 +124,14 @@ def run(quick: bool = False, lanes: int = 2**20, repeats: int | None = None,
     repeats = repeats or (1 if quick else 3)
     envmap = envmap_throughput(lanes, repeats)
     rows = []
-    print(f"{'warp':>9} {'leaf':>9} {'bands':>5} {'depth':>5} {'Msamples/s':>10} "
+    print(f"{'warp':>9} {'leaf':>9} {'bands':>5} {'depth':>5} {'Msamples/s':>10} {'coeffs Ms/s':>11} "
           f"{'mean rel pdf err':>16} {'envmap Ms/s':>11} {'load':>5}")
     for warp_name, leaf, n_bands, depth in (QUICK_SWEEP if quick else FULL_SWEEP):
         r = measure(warp_name, leaf, n_bands, depth, exponent, lanes, repeats)
         r["mitsuba_envmap_msamples_per_s"] = envmap
         rows.append(r)
         print(f"{warp_name:>9} {leaf:>9} {n_bands:>5} {depth:>5} {r['msamples_per_s']:>10.2f} "
+              f"{r['coefficients_msamples_per_s']:>11.1f} "
               f"{100 * r['mean_rel_pdf_error']:>15.3f}% {envmap:>11.1f} {r['load_average']:>5.1f}", flush=True)
     return rows
 

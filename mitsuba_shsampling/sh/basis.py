@@ -147,22 +147,33 @@ def sh_eval_sum(coeffs, d):
     return acc
 
 
-def sh_eval_sum_on_circle(coeffs, z, phis: list) -> list:
-    """Evaluate the SH expansion at one z and several azimuths per lane.
+def legendre_contraction(coeffs, z) -> dict:
+    """B[m] = sum_l f_l^m Qb_l^|m|(z) for m = -order..order, per lane.
 
-    Separable: B[m] = sum_l f_l^m Qb_l^|m|(z) costs n^2 multiply-adds once,
-    then each azimuth costs O(n). Returns one array per entry of ``phis``.
+    The SH expansion on the circle of height z is then
+    f(z, phi) = B[0] + sqrt(2) sum_{m>0} sin^m(theta) (B[m] cos(m phi) + B[-m] sin(m phi)):
+    n^2 multiply-adds once per z, O(n) per azimuth.
     """
     order = bands_of(coeffs) - 1
     q = reduced_legendre(z, order)
-    s = dr.safe_sqrt(dr.fma(-z, z, 1.0))
     b = {}
     for m in range(-order, order + 1):
-        acc = None
-        for l in range(abs(m), order + 1):
-            t = coeffs[sh_index(l, m)] * q[l, abs(m)]
-            acc = t if acc is None else acc + t
+        acc = coeffs[sh_index(abs(m), m)] * q[abs(m), abs(m)]
+        for l in range(abs(m) + 1, order + 1):
+            acc = dr.fma(coeffs[sh_index(l, m)], q[l, abs(m)], acc)
         b[m] = acc
+    return b
+
+
+def sh_eval_sum_on_circle(coeffs, z, phis: list) -> list:
+    """Evaluate the SH expansion at one z and several azimuths per lane.
+
+    Separable (:func:`legendre_contraction`): n^2 multiply-adds once, then
+    O(n) per azimuth. Returns one array per entry of ``phis``.
+    """
+    order = bands_of(coeffs) - 1
+    b = legendre_contraction(coeffs, z)
+    s = dr.safe_sqrt(dr.fma(-z, z, 1.0))
     out = []
     for phi in phis:
         sin_phi, cos_phi = dr.sincos(phi)

@@ -143,11 +143,22 @@ def contract_z(coeffs: list, zint: dict, order: int) -> list:
 
 
 def contract_phi(a: list, phi: list):
-    """sum over m of A[m] * Phi_m (both indexed m + order)."""
-    acc = a[0] * phi[0]
-    for am, pm in zip(a[1:], phi[1:]):
-        acc = dr.fma(am, pm, acc)
-    return acc
+    """sum over m of A[m] * Phi_m (both indexed m + order).
+
+    Summed from m = 0 outwards, the order in which the recurrences of
+    :func:`phi_integrals` produce Phi_m, into four accumulators: the
+    hierarchical walks wait for this sum at every level, and one accumulator
+    run from m = -order would be a chain of 2 order + 1 dependent
+    multiply-adds that could only start after the last Phi_m.
+    """
+    order = len(a) // 2
+    outwards = [order] + [order + sign * m for m in range(1, order + 1) for sign in (1, -1)]
+    sums = [a[i] * phi[i] for i in outwards[:4]]
+    for j, i in enumerate(outwards[4:]):
+        sums[j % 4] = dr.fma(a[i], phi[i], sums[j % 4])
+    while len(sums) > 1:
+        sums = [x + y for x, y in zip(sums[::2], sums[1::2])] + sums[len(sums) - len(sums) % 2:]
+    return sums[0]
 
 
 def cell_integrals(z0, z1, phi0, phi1, order: int, precise: bool = False) -> list:
@@ -186,30 +197,60 @@ def function_cell_integral(coeffs: list, z0, z1, phi0, phi1):
     return contract_phi(contract_z(coeffs, zi, order), phi_integrals(phi0, phi1, order))
 
 
-def zonal_antiderivatives(z, order: int) -> list:
-    """Antiderivatives of the normalised zonal functions K_l^0 P_l(z), l = 0..order.
+def _monic_legendre_leading(k: int) -> float:
+    """Leading coefficient of P_k: P_k = lead * Pm_k with Pm_k monic."""
+    return math.comb(2 * k, k) / 2.0**k
 
-    Only the m = 0 column of :func:`legendre_antiderivatives`, in O(order)
-    operations instead of O(order^2), from the classical identity
-    (2l+1) P_l = d/dz (P_{l+1} - P_{l-1})::
 
-        F_0 = z,   F_l = (P_{l+1}(z) - P_{l-1}(z)) / (2l + 1)   (l >= 1)
+def _monic_legendre_gamma(k: int) -> float:
+    """gamma_k of the monic Legendre recurrence Pm_{k+1} = z Pm_k - gamma_k Pm_{k-1}."""
+    return k * k / (4.0 * k * k - 1.0)
 
-    Returns a list of ``order + 1`` values K_l^0 F_l(z). The integration
-    constant differs from :func:`legendre_antiderivatives`; only differences
-    of values from the same function are meaningful. Integrating the zonal
-    part over a full-azimuth strip [z0, z1] x [0, 2 pi) needs nothing else,
-    since every m != 0 term integrates to 0 over the full circle.
+
+def strip_antiderivative_series(zonal: list) -> list:
+    """Antiderivative of a function's integral over full-azimuth strips, as a series.
+
+    ``zonal`` holds the m = 0 coefficients f_l^0, l = 0..order. Over the full
+    circle every m != 0 term integrates to 0, so the integral over the strip
+    [z0, z1] x [0, 2 pi) is G(z1) - G(z0) with
+
+        G(z) = 2 pi sum_l f_l^0 K_l^0 F_l(z),   F_0 = z,
+        F_l = (P_{l+1} - P_{l-1}) / (2l + 1)   (l >= 1, from (2l+1) P_l = (P_{l+1} - P_{l-1})'),
+
+    a polynomial of degree order + 1. Returns its coefficients e_k,
+    k = 0..order+1, in the *monic* Legendre basis Pm_k = P_k / lead_k
+    (evaluate with :func:`monic_legendre_series`): O(n) once per lane, after
+    which every G(z) costs 2 (order + 2) multiply-adds. The constant term is
+    dropped (only differences of G are meaningful). The monic basis is as well
+    conditioned on [-1, 1] as the Legendre one, unlike the power basis.
     """
-    check_order(order)
-    p = [1.0 + 0 * z, z]  # Bonnet's recurrence: unnormalised P_l is bounded by 1 on [-1, 1]
-    for l in range(1, order + 1):
-        p.append(((2 * l + 1) / (l + 1)) * z * p[l] - (l / (l + 1)) * p[l - 1])
-    out = [z / math.sqrt(4.0 * math.pi)]
-    for l in range(1, order + 1):
-        k_l = math.sqrt((2 * l + 1) / (4.0 * math.pi))
-        out.append((k_l / (2 * l + 1)) * (p[l + 1] - p[l - 1]))
-    return out
+    order = len(zonal) - 1
+    terms = [2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi)) for l in range(order + 1)]
+    series = [0.0]
+    for k in range(1, order + 2):
+        d = None  # coefficient of P_k: from F_{k-1} (+) and F_{k+1} (-)
+        if k - 1 <= order:
+            d = zonal[k - 1] * (terms[k - 1] / (2 * k - 1))
+        if k + 1 <= order:
+            d = dr.fma(zonal[k + 1], -terms[k + 1] / (2 * k + 3), d)
+        series.append(d * _monic_legendre_leading(k))
+    return series
+
+
+def monic_legendre_series(series: list, z):
+    """sum_k series[k] Pm_k(z) over the monic Legendre polynomials.
+
+    The Pm_k come from their forward recurrence (stable on [-1, 1]) and the
+    sum is split in two accumulators: the only dependent chain is the
+    recurrence, one multiply-add per term, which the hierarchical walks wait
+    for at every level (Clenshaw's backward sum has two per term).
+    """
+    p_prev, p = 1.0, z
+    sums = [series[0], series[1] * z]
+    for k in range(1, len(series) - 1):
+        p_prev, p = p, dr.fma(z, p, -_monic_legendre_gamma(k) * p_prev)
+        sums[(k + 1) % 2] = dr.fma(series[k + 1], p, sums[(k + 1) % 2])
+    return sums[0] + sums[1]
 
 
 def phi_integrals_centred(cos_c, sin_c, half_width: float, order: int) -> list:

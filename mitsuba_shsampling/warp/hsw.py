@@ -155,7 +155,8 @@ class SHWarp:
     n^2 per-lane ``mi.Float`` (or Python floats shared by all lanes), SH
     index l(l+1)+m, and return solid-angle densities of max(f, 0)'s warp.
     Lanes whose function has no positive mass (or non-finite coefficients)
-    get pdf 0 and a harmless unit direction.
+    get pdf 0 and the unit direction +z (a constant: no warp is spent on
+    a sample that carries no weight).
     """
 
     def __init__(self, depth: int = DEFAULT_DEPTH, leaf: str = "uniform"):
@@ -167,7 +168,7 @@ class SHWarp:
         coeffs = as_coefficients(coeffs)
         leaf, t, prob, valid, _ = walk_sample(SHCellWeights(coeffs), self.depth, u)
         z, phi, density = sample_leaf(self.leaf, leaf, t, sh_leaf_corners(coeffs))
-        d = dr.select(valid, grid_direction(z, phi), mi.warp.square_to_uniform_sphere(u))
+        d = dr.select(valid, grid_direction(z, phi), mi.Vector3f(0.0, 0.0, 1.0))
         return d, dr.select(valid, prob * density / leaf.area, 0.0)
 
     def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:

@@ -6,21 +6,26 @@ splits in a different order:
 
 1. ``depth`` binary splits in z of full-azimuth strips [z0, z1] x [0, 2 pi).
    Over the full circle every m != 0 term integrates to 0, so a strip's
-   integral needs only the zonal coefficients f_l^0 and the m = 0
-   antiderivatives: O(n) work per level (quadtree: O(n^2)).
-2. One z-contraction A[m] for the chosen strip (two antiderivative rows and
-   n^2 multiply-adds), then ``depth`` binary splits in phi of that strip:
-   each half's integral is sum_m A[m] Phi_m, O(n) per level with the phi
-   centre's cos/sin carried by angle addition
-   (:func:`~mitsuba_shsampling.grid.child_phi_centres`).
+   integral is G(z1) - G(z0) for one polynomial G of the zonal coefficients
+   f_l^0, built once per lane; a split evaluates G once, 2 (n + 1)
+   multiply-adds (quadtree: O(n^2) per level).
+2. ``depth`` binary splits in phi of the chosen strip, weighted by the
+   integrals of f over arcs of the strip's *middle circle*: one row
+   B[m] = sum_l f_l^m P_l^m(z_mid) (n^2 multiply-adds), then each half's
+   integral is sum_m B[m] Phi_m, O(n) per level with the phi centre's cos/sin
+   carried by angle addition (:func:`~mitsuba_shsampling.grid.child_phi_centres`).
+   A strip is 2^(1 - depth) high (1/2048 at the default depth), so the middle
+   circle's profile stands for the strip's at a fraction of the cost of its
+   exact z integral (two antiderivative rows).
 
 Both phases are hierarchical warps, so the density is again the product of
 the branch probabilities (clamped at 0) times the leaf density over the leaf's
-solid angle: exact for the warp and safe for MIS. For a non-negative f the
-leaf probabilities equal the quadtree's (leaf integral / total); where f
-rings negative, the strip phase clamps only whole strips, the phi phase
-clamps within the strip. The n^2 cost is paid once instead of per level, so
-deep trees are cheap.
+solid angle: exact for the warp and safe for MIS, whatever the weights
+approximate. For a non-negative f the leaf probabilities approach the
+quadtree's (leaf integral / total) as the strips narrow; where f rings
+negative, the strip phase clamps only whole strips, the phi phase clamps
+within the strip's middle circle. The n^2 cost is paid once instead of per
+level, so deep trees are cheap.
 
 Frame and units as in :mod:`.hsw` (SH frame, z-up, per steradian).
 """
@@ -34,9 +39,8 @@ import drjit as dr
 import mitsuba as mi
 
 from ..grid import TWO_PI, Cell, child_phi_centres, grid_coordinates, grid_direction
-from ..sh.basis import as_coefficients, bands_of, sh_index
-from ..sh.integrals import (contract_phi, contract_z, legendre_antiderivatives,
-                            phi_integrals_centred, z_integrals, zonal_antiderivatives)
+from ..sh.basis import as_coefficients, bands_of, legendre_contraction, sh_index
+from ..sh.integrals import contract_phi, monic_legendre_series, phi_integrals_centred, strip_antiderivative_series
 from .hierarchy import Split, check_depth, check_leaf, leaf_density, sample_leaf, walk_pdf_1d, walk_sample_1d
 from .hsw import sh_leaf_corners
 
@@ -47,15 +51,15 @@ a little more time, while the bilinear leaf gained little for much more time
 
 
 class StripState(NamedTuple):
-    """:class:`ZonalStripWeights` state: the zonal antiderivative row at the
-    strip's lower bound, and the strip's signed integral."""
+    """:class:`ZonalStripWeights` state: G (see below) at the strip's lower
+    bound, and the strip's signed integral."""
 
-    f_lo: list
+    g_lo: mi.Float
     total: mi.Float
 
 
 class StripSplit(NamedTuple):
-    f_mid: list
+    g_mid: mi.Float
     lower: mi.Float
     upper: mi.Float
 
@@ -63,33 +67,30 @@ class StripSplit(NamedTuple):
 class ZonalStripWeights:
     """1D weight provider over z: integrals of f over full-azimuth strips.
 
-    State (:class:`StripState`): the zonal antiderivative row at the strip's
-    lower bound and the strip's signed integral (the upper half is the strip
-    minus the lower half).
+    A strip's integral is G(z1) - G(z0) for one polynomial G per lane
+    (:func:`~mitsuba_shsampling.sh.integrals.strip_antiderivative_series`,
+    built once from the zonal coefficients), so a split costs one evaluation
+    of G at the midpoint. State (:class:`StripState`): G at the strip's lower
+    bound and the strip's signed integral (the upper half is the strip minus
+    the lower half).
     """
 
     def __init__(self, coeffs: list):
-        self.order = bands_of(coeffs) - 1
-        self.zonal = [coeffs[sh_index(l, 0)] for l in range(self.order + 1)]
-
-    def _strip_integral(self, f_lo: list, f_hi: list):
-        acc = self.zonal[0] * (f_hi[0] - f_lo[0])
-        for c, a, b in zip(self.zonal[1:], f_lo[1:], f_hi[1:]):
-            acc = dr.fma(c, b - a, acc)
-        return TWO_PI * acc
+        order = bands_of(coeffs) - 1
+        self.series = strip_antiderivative_series([coeffs[sh_index(l, 0)] for l in range(order + 1)])
 
     def root(self) -> StripState:
-        lo, hi = zonal_antiderivatives(-1.0, self.order), zonal_antiderivatives(1.0, self.order)
-        return StripState([mi.Float(v) for v in lo], self._strip_integral(lo, hi))
+        g_lo = monic_legendre_series(self.series, -1.0)
+        return StripState(g_lo, monic_legendre_series(self.series, 1.0) - g_lo)
 
     def children(self, state: StripState, level, z0, zm, z1) -> Split:
-        f_mid = zonal_antiderivatives(zm, self.order)
-        lower = self._strip_integral(state.f_lo, f_mid)
+        g_mid = monic_legendre_series(self.series, zm)
+        lower = g_mid - state.g_lo
         upper = state.total - lower
-        return Split((lower, upper), StripSplit(f_mid, lower, upper))
+        return Split((lower, upper), StripSplit(g_mid, lower, upper))
 
     def advance(self, state: StripState, pending: StripSplit, level, upper) -> StripState:
-        return StripState([dr.select(upper, m, l) for l, m in zip(state.f_lo, pending.f_mid)],
+        return StripState(dr.select(upper, pending.g_mid, state.g_lo),
                           dr.select(upper, pending.upper, pending.lower))
 
 
@@ -109,13 +110,25 @@ class ArcSplit(NamedTuple):
 
 
 class AzimuthWeights:
-    """1D weight provider over phi inside one z strip, from its row A[m]."""
+    """1D weight provider over phi: integrals of f over arcs of the circle at height ``z``.
 
-    def __init__(self, coeffs: list, z0, z1):
+    f(z, phi) = sum_m row[m] Phi'_m(phi) (cos(m phi) for m > 0, sin(|m| phi)
+    for m < 0), with the row from one :func:`~mitsuba_shsampling.sh.basis.legendre_contraction`
+    (n^2 multiply-adds), so an arc's integral is ``contract_phi(row, Phi)``.
+    """
+
+    def __init__(self, coeffs: list, z):
         self.order = bands_of(coeffs) - 1
-        rows = z_integrals(legendre_antiderivatives(z0, self.order),
-                           legendre_antiderivatives(z1, self.order))
-        self.row = contract_z(coeffs, rows, self.order)
+        b = legendre_contraction(coeffs, z)
+        # y_l^m carries sqrt(2) sin^|m|(theta) besides Qb_l^|m| for m != 0.
+        sin_theta = dr.safe_sqrt(dr.fma(-z, z, 1.0))
+        self.row = [None] * (2 * self.order + 1)
+        self.row[self.order] = b[0]
+        scale = math.sqrt(2.0) * sin_theta
+        for m in range(1, self.order + 1):
+            self.row[self.order + m] = scale * b[m]
+            self.row[self.order - m] = scale * b[-m]
+            scale = scale * sin_theta
 
     def root(self) -> ArcState:
         # Centre of [0, 2 pi) is pi; its full-circle integral keeps only m = 0.
@@ -153,21 +166,20 @@ class SHStripWarp:
         self.depth = check_depth(depth)
         self.leaf = check_leaf(leaf)
 
-    def _strip(self, iz):
-        """z bounds of strip ``iz`` (those of any leaf in that row)."""
-        leaf = Cell(self.depth, iz, 0)
-        return leaf.z0, leaf.z1
+    def _strip_middle(self, iz):
+        """z of the middle circle of strip ``iz`` (that of any leaf in that row)."""
+        return Cell(self.depth, iz, 0).zm
 
     def sample(self, coeffs, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a direction; returns (direction, pdf)."""
         coeffs = as_coefficients(coeffs)
         iz, t_z, p_z, valid_z, _ = walk_sample_1d(ZonalStripWeights(coeffs), self.depth, u.x, -1.0, 1.0)
         iphi, t_phi, p_phi, valid_phi, _ = walk_sample_1d(
-            AzimuthWeights(coeffs, *self._strip(iz)), self.depth, u.y, 0.0, TWO_PI)
+            AzimuthWeights(coeffs, self._strip_middle(iz)), self.depth, u.y, 0.0, TWO_PI)
         leaf = Cell(self.depth, iz, iphi)
         z, phi, density = sample_leaf(self.leaf, leaf, mi.Point2f(t_z, t_phi), sh_leaf_corners(coeffs))
         valid = valid_z & valid_phi
-        d = dr.select(valid, grid_direction(z, phi), mi.warp.square_to_uniform_sphere(u))
+        d = dr.select(valid, grid_direction(z, phi), mi.Vector3f(0.0, 0.0, 1.0))
         return d, dr.select(valid, p_z * p_phi * density / leaf.area, 0.0)
 
     def pdf(self, coeffs, d: mi.Vector3f) -> mi.Float:
@@ -175,6 +187,6 @@ class SHStripWarp:
         coeffs = as_coefficients(coeffs)
         z, phi = grid_coordinates(d)
         iz, p_z, _ = walk_pdf_1d(ZonalStripWeights(coeffs), self.depth, z, -1.0, 1.0)
-        iphi, p_phi, _ = walk_pdf_1d(AzimuthWeights(coeffs, *self._strip(iz)), self.depth, phi, 0.0, TWO_PI)
+        iphi, p_phi, _ = walk_pdf_1d(AzimuthWeights(coeffs, self._strip_middle(iz)), self.depth, phi, 0.0, TWO_PI)
         leaf = Cell(self.depth, iz, iphi)
         return p_z * p_phi * leaf_density(self.leaf, leaf, z, phi, sh_leaf_corners(coeffs)) / leaf.area
