@@ -186,6 +186,10 @@ def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_meas
     # A film that measures more than the environment's quadrature: the excess is shared.
     calibrate(pilots, {E.label: 9.5, P.label: 3.0 + 0.5 + 1.0 + 2.0}, model, candidates, variance, rest=0.5)
     assert pilots.shared_variance == pytest.approx(3.0) and pilots.calibration == {P: pytest.approx(1.0)}
+    # ... but never more than the least any pilot measured: the rest is the environment's own.
+    calibrate(pilots, {E.label: 9.5, P.label: 2.5}, model, candidates, variance, rest=0.5)
+    assert pilots.shared_variance == pytest.approx(2.5)
+    assert pilots.calibration[E] == pytest.approx((9.5 - 2.5) / 6.5) == pilots.calibration[EO]
 
 
 def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():

@@ -383,9 +383,10 @@ def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, var
     variances (``measured``, quadrature units) against the quadrature's (``model``).
 
     - ``S``: what the pilots without the product (the environment strategy, whose
-      quadrature is of Mitsuba's own sampling) have beyond the quadrature.
-      Where they have less (the quadrature's own noise under a sun), ``S`` is 0 and
-      the environment strategies' variances are scaled down to them instead.
+      quadrature is of Mitsuba's own sampling) have beyond the quadrature, at most
+      the least variance any pilot measured. Where they have less (the quadrature's
+      own noise under a sun), or more than that bound, the environment strategies'
+      variances are scaled to them instead.
     - Each product strategy's pilot (every material that can run it on it, the
       others on the environment strategy) then fixes a factor on that strategy's
       variances: the pilot's measured variance, less ``S`` and the other
@@ -397,9 +398,11 @@ def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, var
         return
     measured_env = float(np.mean([measured[name] for name in environment]))
     model_env = model[Strategy.ENVIRONMENT.label]
-    pilots.shared_variance = max(0.0, measured_env - model_env)
-    if measured_env < model_env:
-        scale = max(measured_env / model_env, CALIBRATION_RANGE[0])
+    # No pilot's film can have less variance than the part they all share: beyond the
+    # least of them, the environment's excess is the quadrature's own shortfall.
+    pilots.shared_variance = float(np.clip(measured_env - model_env, 0.0, min(measured.values())))
+    if measured_env - pilots.shared_variance != model_env and model_env > 0:
+        scale = float(np.clip((measured_env - pilots.shared_variance) / model_env, *CALIBRATION_RANGE))
         pilots.calibration = {Strategy.ENVIRONMENT: scale, Strategy.ENVIRONMENT_ONLY: scale}
     environment_scale = pilots.calibration.get(Strategy.ENVIRONMENT, 1.0)
     for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
