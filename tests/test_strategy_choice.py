@@ -89,6 +89,32 @@ def test_a_diffuse_lobe_under_a_broad_window_gives_every_sample_to_the_product()
     assert variance[PO] < 0.5 * min(variance[E], variance[P])
 
 
+def test_a_material_also_seen_from_its_back_keeps_its_product_strategies():
+    """Where the camera sees a product material's back (a one-sided BSDF, black there) a
+    lane has no lobe and samples the environment alone: the product strategies are
+    predicted as that, not left unknown (an unknown once ruled them out for the
+    material and, through the pilots' calibration, for the whole scene)."""
+    scene = mi.load_dict({
+        "type": "scene", "env": WINDOW,
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, -3, 3], target=[0, 0, 0], up=[0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}}},
+        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": {"type": "ref", "id": "paint"}},
+        "paint": {"type": "diffuse"},
+        "card": {"type": "rectangle", "bsdf": {"type": "ref", "id": "paint"},  # its back faces the camera
+                 "to_world": mi.ScalarTransform4f().translate([0, 0, 0.5]).rotate([1, 0, 0], -135)}})
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    si, bsdf, _ = camera_frames(scene, scene.sensors()[0])
+    variances = frame_variances(env, si, bsdf, 1, 1)
+    back = si.wi.z.numpy() < 0
+    assert back.any() and (~back).any()
+    assert np.all(np.isfinite(variances[:, [E, P, EO, PO]]))
+    assert np.array_equal(variances[back, P], variances[back, E])
+    assert np.array_equal(variances[back, PO], variances[back, EO])
+    choice = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=Pilots(PASS_TIME))
+    assert choice.materials[0].strategy == PO
+
+
 def test_a_dirac_part_rules_out_the_strategies_without_a_bsdf_sample():
     _, variance = chosen({"type": "plastic"}, WINDOW)
     assert set(variance) == {E, P}

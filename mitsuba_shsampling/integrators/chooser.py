@@ -179,8 +179,9 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     (luminance^2) of one lane's environment estimate with ``n_e`` strategy
     samples and ``n_b`` BSDF samples (power heuristic on sample-count
     fractions), or with ``n_e + n_b`` strategy samples for the strategies that
-    carry every sample. NaN where a strategy cannot be evaluated (no product lobe
-    or no product built; no uncompensated product). Visibility counts: the
+    carry every sample. NaN where no product is built. At points without a
+    product lobe the product strategies are what such a lane runs: the
+    environment alone. Visibility counts: the
     integrand is BSDF x radiance x a shadow ray's verdict.
 
     The integrals E[w^2 f^2 / p] and E[w f] are estimated with ``directions``
@@ -271,10 +272,13 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
         result = np.full((points, len(Strategy)), np.nan)
         result[:, Strategy.ENVIRONMENT] = mis_variance(p_env)
         result[:, Strategy.ENVIRONMENT_ONLY] = alone_variance(p_plain_env)
+        # A lane of a product material without a lobe (its back side, where the BSDF is
+        # black) samples the environment alone (ProductEnvironment.sample_environment).
         if product:
-            result[lobed, Strategy.PRODUCT] = mis_variance(p_product)[lobed]
+            result[:, Strategy.PRODUCT] = np.where(lobed, mis_variance(p_product), result[:, Strategy.ENVIRONMENT])
         if plain:
-            result[lobed, Strategy.PRODUCT_ONLY] = alone_variance(p_plain)[lobed]
+            result[:, Strategy.PRODUCT_ONLY] = np.where(lobed, alone_variance(p_plain),
+                                                        result[:, Strategy.ENVIRONMENT_ONLY])
     return result
 
 
@@ -411,8 +415,8 @@ def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, var
             continue
         own = sum(variance[k][strategy] for k, s in assignment.items() if s == strategy)
         others = rest + sum(variance[k][s] for k, s in assignment.items() if s != strategy)
-        if own <= 1e-3 * model[strategy.label]:
-            continue  # the strategy barely shows in its pilot
+        if not np.isfinite(own + others) or own <= 1e-3 * model[strategy.label]:
+            continue  # the strategy barely shows in its pilot (or cannot be predicted)
         observed = measured[strategy.label] - pilots.shared_variance - others * environment_scale
         pilots.calibration[strategy] = float(np.clip(observed / own, *CALIBRATION_RANGE))
 
