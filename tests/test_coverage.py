@@ -290,3 +290,22 @@ def test_every_forced_strategy_is_unbiased_beside_an_area_light(strategy):
                        area_light=True)
     sh = mi.load_dict({"type": "sh_direct", "max_bands": 5, "strategy": strategy})
     assert_unbiased(scene, sh, mi.load_dict({"type": "path", "max_depth": 2}))
+
+
+def test_without_bsdf_samples_the_dirac_components_still_reflect_the_environment():
+    """``bsdf_samples`` 0: the environment samples evaluate the smooth components only;
+    glass, a plastic's coating and a mirror are reached by a sample of their Dirac
+    components alone (Mitsuba's ``direct`` leaves them black)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = make_scene(materials={"smooth": MATERIALS["smooth"], "plastic": {"type": "plastic"},
+                                      "glass": {"type": "dielectric"}, "diffuse": MATERIALS["diffuse"],
+                                      "blend": {"type": "blendbsdf", "weight": 0.5, "bsdf_0": {"type": "plastic"},
+                                                "bsdf_1": {"type": "roughconductor", "alpha": 0.2}}})
+    reference = mi.load_dict({"type": "path", "max_depth": 2})
+    for strategy in ("product", "environment"):
+        assert_unbiased(scene, mi.load_dict({"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0,
+                                             "mis_compensation": False, "strategy": strategy, "max_bands": 5}),
+                        reference)
+    assert_unbiased(scene, mi.load_dict({"type": "oracle_direct", "emitter_samples": 2, "bsdf_samples": 0}),
+                    reference)

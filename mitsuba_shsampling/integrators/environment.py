@@ -55,7 +55,7 @@ class ProductEnvironment:
     ``strategies`` (:class:`StrategyTable`: each material's strategy),
     ``choice`` (the chooser's :class:`~.chooser.StrategyChoice` once made),
     ``needs_emitter_sampling`` (bool: Mitsuba's emitter sampling has work to do:
-    emitters besides the environment).
+    emitters besides the environment), ``has_dirac_materials`` (bool).
     """
 
     def __init__(self, scene: mi.Scene, options: ProductOptions, carry_all: bool = False):
@@ -67,6 +67,9 @@ class ProductEnvironment:
         self.strategy_option = options.strategy
         #: Registry id -> the scene's material (:mod:`~mitsuba_shsampling.scene_materials`).
         self._materials = {registry_id(m.bsdf): m for m in scene_materials(scene)}
+        #: Some material has a Dirac component (which only a BSDF sample reaches).
+        self.has_dirac_materials = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Delta)
+                                       for m in self._materials.values())
         self.carry_all = carry_all
         self.active = False
         self.needs_emitter_sampling = True

@@ -117,3 +117,22 @@ def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
     pdf_em = dr.select(delta | ~hit.smooth, 0.0, pdf_em)
     weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)
     return dr.select(act, bsdf_weight * Le * weight, 0.0)
+
+
+def dirac_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2) -> mi.Spectrum:
+    """One BSDF sample of the Dirac components alone (``BSDFContext.type_mask``), of
+    the emitters it hits, with weight 1: no emitter strategy can draw those
+    directions. For estimators that run no other BSDF sample (``bsdf_samples``
+    0), so that a smooth dielectric, a plastic's coating or a mirror still
+    reflect their surroundings; ``bsdf.eval`` (which the emitter samples use)
+    leaves the Dirac components out, so the two never count the same light."""
+    ctx = mi.BSDFContext()
+    ctx.type_mask = mi.BSDFFlags.Delta
+    si, bsdf = hit.si, hit.bsdf
+    act = hit.active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
+    bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, act)
+    act &= bs.pdf > 0
+    si_b = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), act)
+    emitter = si_b.emitter(scene, act)
+    act &= emitter != None  # noqa: E711 (per-lane pointer test)
+    return dr.select(act, bsdf_weight * emitter.eval(si_b, act), 0.0)

@@ -9,8 +9,8 @@ from ..envmap.pyramid import EnvPyramid
 from ..lobes.fit import luminance
 from ..warp.oracle import OracleWarp
 from .environment import SceneCache
-from .estimators import (bsdf_sample_of_emitters, environment_sample, first_hit, is_emitter, mis_weight,
-                         mitsuba_emitter_sample)
+from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, environment_sample, first_hit,
+                         is_emitter, mis_weight, mitsuba_emitter_sample)
 from .options import OracleOptions, document_parameters
 
 
@@ -110,6 +110,9 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
         for _ in range(n_b):
             L += bsdf_sample_of_emitters(scene, hit, sampler.next_1d(hit.active), sampler.next_2d(hit.active),
                                          strategy_pdf, frac_e, frac_b) / n_b
+
+        if n_b == 0:  # as sh_direct: the Dirac components' own sample (estimators.py)
+            L += dirac_sample_of_emitters(scene, hit, sampler.next_1d(hit.active), sampler.next_2d(hit.active))
 
         sees_environment = not options.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []

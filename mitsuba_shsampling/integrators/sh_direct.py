@@ -7,7 +7,7 @@ import mitsuba as mi
 
 from .chooser import StrategyChooser
 from .environment import ProductEnvironment, SceneCache
-from .estimators import bsdf_sample_of_emitters, first_hit
+from .estimators import bsdf_sample_of_emitters, dirac_sample_of_emitters, first_hit
 from .options import DirectOptions, document_parameters
 
 
@@ -37,7 +37,9 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     (anisotropic, transmissive, ``bumpmap``/``normalmap``) sample the
     environment alone from the same (MIS-compensated) pyramid; delta BSDFs
     and scenes without an ``envmap`` use Mitsuba's own sampling and build
-    nothing. After a render, ``integrator.choice(scene)`` tells what was chosen. The 2D sample of each product sample comes from the
+    nothing. With ``bsdf_samples`` 0, unlike :monosp:`direct`, the Dirac
+    components of a BSDF (glass, a plastic's coating, a mirror) still get one
+    sample of their own, so nothing the emitters light is left black. After a render, ``integrator.choice(scene)`` tells what was chosen. The 2D sample of each product sample comes from the
     scene's sampler (``next_2d``), so stratification carries through the warp.
 
     .. tabs::
@@ -123,6 +125,11 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                                                      True, frac_b, frac_e) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b, mitsuba_pdf) / n_b)
+
+        # Without BSDF samples nothing else reaches a Dirac component (Mitsuba's direct then
+        # leaves it black): one sample of those components alone, where the scene has any.
+        if n_b == 0 and env.has_dirac_materials:
+            L += dirac_sample_of_emitters(scene, hit, sampler.next_1d(hit.active), sampler.next_2d(hit.active))
 
         sees_environment = not options.hide_emitters and scene.environment() is not None
         return L, si.is_valid() | sees_environment, []
