@@ -51,7 +51,9 @@ class FirstHit(NamedTuple):
 def first_hit(scene: mi.Scene, ray, active, hide_emitters: bool) -> FirstHit:
     """Intersect the camera ray and collect what the estimators need, as ``direct`` does."""
     ray, active = mi.Ray3f(ray), mi.Bool(active)
-    si = scene.ray_intersect(ray, active)
+    # Camera rays are coherent: Mitsuba's direct traces them in Embree's coherent mode too
+    # (without it the pass cost 5-10 % more than direct's at the same operation count).
+    si = scene.ray_intersect(ray, mi.RayFlags.All, True, active)
     emitted = mi.Spectrum(0.0)
     if not hide_emitters:
         emitted = si.emitter(scene, active).eval(si, active)

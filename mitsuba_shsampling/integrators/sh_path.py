@@ -93,7 +93,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         prev_env_pdf = mi.Float(0.0)
 
         while active:
-            si = scene.ray_intersect(ray, active)
+            # The camera rays are coherent (as Mitsuba's path traces them).
+            si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0, active)
 
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
             emitter = si.emitter(scene, active)

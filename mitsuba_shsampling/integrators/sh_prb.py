@@ -156,7 +156,8 @@ class SHPRBIntegrator(RBIntegrator):
         prev_env_pdf = mi.Float(0.0)
 
         while dr.hint(active, max_iterations=self.max_depth, label=f"sh_prb ({mode.name})"):
-            si = scene.ray_intersect(ray, active)
+            # The camera rays are coherent (as Mitsuba's prb traces them).
+            si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0, active)
             bsdf = si.bsdf(ray)
 
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
