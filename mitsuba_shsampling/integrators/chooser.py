@@ -72,10 +72,13 @@ the rounds differ: every strategy draws the same sampler dimensions, so within a
 the camera rays, the BSDF samples and the rare paths (a glass block's caustic) are
 common to all pilots, and their variance cancels where the pilots are compared."""
 
-REQUIRED_GAIN = 1.05
+REQUIRED_GAIN = 1.15
 """A product strategy must be predicted to beat the lean kernel by this factor at
-equal time: the pilots' pass times scatter by a few per cent, and the lean
-kernel is, per material, exactly one of Mitsuba's own strategies."""
+equal time. The lean kernel is, per material, exactly one of Mitsuba's own
+strategies at Mitsuba's cost; a prediction's error is the scatter of the pilots'
+times and images: on the realistic scenes the measured gain was 0.85-1.15x the
+predicted one where no rare path decided it, and the default job measured 0.78
+where 1.09 was predicted (1.05 was the bar then)."""
 
 
 @dataclasses.dataclass
