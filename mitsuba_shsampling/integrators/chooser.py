@@ -50,6 +50,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..report.metrics import luminance
 from .estimators import environment_ray_target, mis_weight
 from .strategy import Strategy
 
@@ -328,12 +329,6 @@ def film_variance_factor(film: mi.Film, spp: int) -> float:
     return ratio ** 2 / spp
 
 
-def luminance(image) -> np.ndarray:
-    """Luminance of a developed RGB(A...) image (H, W, C) as float64."""
-    rgb = np.asarray(image, dtype=np.float64)[..., :3]
-    return rgb @ np.array([0.2126, 0.7152, 0.0722])
-
-
 def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], object],
                        repeats: int = PILOT_REPEATS, spp: int = 1) -> Pilots:
     """Pass time (s) and image variance per candidate: ``candidates`` maps a name to
@@ -369,7 +364,7 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
                 if round_ > 0:
                     times[name].append(elapsed)
                 if image is not None:
-                    images[name].append(luminance(image))
+                    images[name].append(luminance(np.asarray(image, dtype=np.float64)))
     finally:
         env.warp, env.warp_plain = warps
         table.assign(saved)
@@ -484,8 +479,11 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
 
     # The lean kernel: the environment strategies only, which cost the same.
     cheap = (Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY)
-    lean_choice = {k: min((s for s in allowed[k] if s in cheap), key=lambda s: (variance[k][s], s))
-                   for k in materials}
+
+    def best_environment_strategies(variance):
+        return {k: min((s for s in allowed[k] if s in cheap), key=lambda s: (variance[k][s], s)) for k in materials}
+
+    lean_choice = best_environment_strategies(variance)
     product_possible = any(s.uses_product for k in materials for s in allowed[k])
 
     choice, lean, gain, shared, fit = lean_choice, True, 1.0, 0.0, {}
@@ -510,8 +508,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         fit = {name: (model[name] + shared, measured[name]) for name in measured}
         variance = {k: {s: v * pilots.calibration.get(s, 1.0) for s, v in row.items()} for k, row in variance.items()}
         rest *= pilots.calibration.get(Strategy.ENVIRONMENT, 1.0)
-        lean_choice = {k: min((s for s in allowed[k] if s in cheap), key=lambda s: (variance[k][s], s))
-                       for k in materials}
+        lean_choice = best_environment_strategies(variance)  # with the calibrated variances
 
         pass_time = pilots.pass_time
         base = pass_time[Strategy.ENVIRONMENT.label]
