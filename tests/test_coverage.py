@@ -2,8 +2,10 @@
 
 In every lane, the strategies that run cover every direction where
 BSDF x radiance > 0: the product strategy's pdf is positive wherever the map
-is lit, and lanes without a product lobe (frame-perturbing wrappers, unfitted
-BSDFs) are covered by Mitsuba's own emitter sampling. Checked here by Monte
+is lit, and lanes without a product lobe (transmissive or unfitted BSDFs) are
+covered by Mitsuba's own emitter sampling. Frame-perturbing wrappers (``bumpmap``,
+``normalmap``) are product-sampled with their nested BSDF's lobe about the
+perturbed normal. Checked here by Monte
 Carlo quadrature of the direct-lighting integrand at thousands of random
 shading points under a map with a small, very bright sun, on every BSDF a
 user can write (wrappers included), and end to end: product-only sampling is
@@ -162,7 +164,7 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
 
 
 #: BSDFs without a product lobe: their lanes sample the environment alone.
-NO_PRODUCT_LOBE = ("bumpmap", "normalmap", "roughdielectric")
+NO_PRODUCT_LOBE = ("roughdielectric",)
 
 
 @pytest.mark.parametrize("name", list(BSDFS))
@@ -205,7 +207,14 @@ def test_only_integrators_that_may_skip_the_bsdf_sample_offer_strategies_without
 
 def test_bsdfs_without_a_product_lobe_choose_between_the_environment_strategies_only():
     assert strategies_of(BSDFS["roughdielectric"]) == ["environment", "environment_only"]
-    assert strategies_of(BSDFS["normalmap"]) == ["environment", "environment_only"]
+    bumped_glass = {"type": "bumpmap", "arbitrary": {"type": "bitmap", "bitmap": HEIGHT, "raw": True},
+                    "bsdf": BSDFS["roughdielectric"]}
+    assert strategies_of(bumped_glass) == ["environment", "environment_only"]
+
+
+@pytest.mark.parametrize("name", ["bumpmap", "normalmap"])
+def test_frame_perturbing_wrappers_are_product_sampled_with_their_nested_lobe(name):
+    assert strategies_of(BSDFS[name]) == ["environment", "environment_only", "product", "product_only"]
 
 
 def test_anisotropic_lobes_are_product_sampled_with_an_isotropic_proxy():
@@ -222,11 +231,15 @@ def test_forcing_the_environment_strategy_builds_no_product():
     assert lobe is None and not np.any(np.array(use_product))
 
 
-def test_frame_perturbing_wrappers_fall_back_to_the_environment_alone_with_a_warning():
+@pytest.mark.parametrize("wrapped", [False, True])
+def test_transmissive_lobes_fall_back_to_the_environment_alone_with_a_warning(wrapped):
+    bsdf = BSDFS["roughdielectric"]
+    if wrapped:
+        bsdf = {"type": "bumpmap", "arbitrary": {"type": "bitmap", "bitmap": HEIGHT, "raw": True}, "bsdf": bsdf}
     scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(),
-                          "ball": {"type": "sphere", "bsdf": BSDFS["bumpmap"]},
+                          "ball": {"type": "sphere", "bsdf": bsdf},
                           "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"}}})
-    with pytest.warns(UserWarning, match="perturbs the shading frame"):
+    with pytest.warns(UserWarning, match="its nested BSDF is transmissive" if wrapped else "it is transmissive"):
         env = ProductEnvironment(scene, ProductOptions(max_bands=8, sh_depth=3))
     assert env.active and env.env_directions is not None
     # The environment is sampled by this package in every lane; Mitsuba's emitter
@@ -242,10 +255,14 @@ WRAPPED = {"bumpmap": BSDFS["bumpmap"], "normalmap": BSDFS["normalmap"], "ggx": 
 
 @pytest.mark.parametrize("integrator", [
     {"type": "sh_direct", "max_bands": 5},
-    {"type": "sh_path", "max_bands": 5, "max_depth": 3},
+    {"type": "sh_direct", "max_bands": 5, "strategy": "product"},
+    {"type": "sh_direct", "max_bands": 5, "strategy": "product_only"},
+    {"type": "sh_path", "max_bands": 5, "max_depth": 3, "strategy": "product"},
 ])
-def test_bsdfs_without_a_product_lobe_are_unbiased_with_the_environment_alone(integrator):
-    """bumpmap, normalmap, anisotropic and transmissive lobes beside a product-sampled GGX."""
+def test_wrapped_anisotropic_and_transmissive_lobes_are_unbiased(integrator):
+    """bumpmap and normalmap (product-sampled about the perturbed normal), an
+    anisotropic lobe (isotropic proxy) and a transmissive one (the environment
+    alone) beside a product-sampled GGX."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         scene = make_scene(materials=WRAPPED)

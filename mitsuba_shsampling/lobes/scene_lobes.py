@@ -34,6 +34,7 @@ from ..sh.basis import MAX_ORDER
 from ..sh.zonal import clamped_cosine_attenuation, phong_attenuation, zonal_to_sh
 from ..warp.proxy_lobe import ProxyLobe
 from .fit import fit_two_lobe, mirror_quadrature, tabulate_lobe, uv_positions, varies_over_surface
+from .perturbed_frames import FRAME_WRAPPERS, PerturbedNormal, nested_bsdf
 
 BAND_ATTENUATION_TOL = 0.1
 """A lobe "needs" n bands when every attenuation |lambda_l|, l >= n, is below this
@@ -95,23 +96,22 @@ ANISOTROPIC_AZIMUTHS = 8
 lobe of the same energy and mean sharpness (the product then follows it loosely,
 BSDF sampling under MIS takes the rest, and the chooser decides whether it pays)."""
 
-FRAME_WRAPPERS = ("BumpMap", "NormalMap")
-"""BSDF classes that perturb the shading frame per point: their lobe is not
-oriented about ``si.sh_frame``, so no proxy is fitted (Mitsuba's sampling)."""
-
-
 def lobe_support(bsdf: mi.BSDF) -> str:
     """How product sampling treats ``bsdf``, decided from its flags.
 
     - ``"delta"``: only Dirac (or null) components, nothing to sample from an SH lobe;
     - ``"unsupported"``: with a non-Dirac transmission component (the proxy is a
-      reflection model), or a wrapper that perturbs the shading frame
-      (:data:`FRAME_WRAPPERS`);
+      reflection model);
     - ``"product"``: everything else; the proxy is fitted to its ``eval``
       (averaged over the view's azimuth for anisotropic lobes).
+
+    A wrapper that perturbs the shading frame (:data:`FRAME_WRAPPERS`) is treated
+    as its nested BSDF: that BSDF's lobe is fitted, and oriented per lane about the
+    perturbed normal (:mod:`.perturbed_frames`).
     """
     if bsdf.class_name() in FRAME_WRAPPERS:
-        return "unsupported"
+        nested = nested_bsdf(bsdf)
+        return "unsupported" if nested is None else lobe_support(nested)
     flags = int(bsdf.flags())
     smooth = int(mi.BSDFFlags.Diffuse) | int(mi.BSDFFlags.Glossy)
     if not flags & smooth:
@@ -163,6 +163,8 @@ class SceneLobes:
         self.has_unsupported_lobes = False
         #: Registry id -> BSDF, for the BSDFs with a product lobe (one table row each).
         self.bsdfs_with_lobes: dict[int, mi.BSDF] = {}
+        #: Registry id -> the perturbed normal of a frame-perturbing wrapper with a lobe.
+        self._perturbed: dict[int, PerturbedNormal] = {}
         for shape in scene.shapes():
             bsdf = shape.bsdf()
             if bsdf is None:
@@ -171,11 +173,12 @@ class SceneLobes:
             if key in row_of_id:
                 continue
             support = lobe_support(bsdf)
-            params = self._fit_bsdf(bsdf, uvs) if support == "product" else None
+            wrapper = bsdf.class_name() in FRAME_WRAPPERS
+            # A wrapper's lobe is its nested BSDF's, about the perturbed normal.
+            params = self._fit_bsdf(nested_bsdf(bsdf) if wrapper else bsdf, uvs) if support == "product" else None
             why = None
             if support == "unsupported":
-                why = ("it perturbs the shading frame" if bsdf.class_name() in FRAME_WRAPPERS
-                       else "it is transmissive")
+                why = ("its nested BSDF is transmissive or not found" if wrapper else "it is transmissive")
             elif support == "product" and not self._fit_is_usable(params):
                 support = "unsupported"
                 # An emitter's own shape gets a black BSDF by default: nothing
@@ -193,6 +196,8 @@ class SceneLobes:
                 continue
             self.fits[bsdf.id()] = params
             self.bsdfs_with_lobes[key] = bsdf
+            if wrapper:
+                self._perturbed[key] = PerturbedNormal(bsdf)
             row_of_id[key] = len(rows)
             rows.append(params)
             needed_bands = max(needed_bands, self._bands_needed(params))
@@ -253,14 +258,29 @@ class SceneLobes:
 
     # -- Device side: per-lane coefficients -----------------------------------
 
-    def _fitted(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True):
-        """:meth:`lookup` before the band-limit clamp of the exponent."""
+    def local_normals(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Vector3f:
+        """Per lane, the normal the lobe is oriented about, in ``si.sh_frame``'s local
+        coordinates: (0, 0, 1), or a frame-perturbing wrapper's perturbed normal
+        (:mod:`.perturbed_frames`). Each wrapper's texture is read in its own lanes only."""
+        normal = mi.Vector3f(0.0, 0.0, 1.0)
+        if not self._perturbed:
+            return normal
+        bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
+        with dr.suspend_grad():  # the lobe steers the sampler; it carries no derivatives
+            for key, perturbed in self._perturbed.items():
+                mine = mi.Bool(active) & (bsdf_id == key)
+                normal = dr.select(mine, perturbed.local_normal(si, mine), normal)
+        return normal
+
+    def _fitted(self, si: mi.SurfaceInteraction3f, active: mi.Bool, normal: mi.Vector3f):
+        """:meth:`lookup` before the band-limit clamp of the exponent, for lobes about
+        ``normal`` (local to ``si.sh_frame``, :meth:`local_normals`)."""
         active = mi.Bool(active) & si.is_valid()
         bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
         active &= bsdf_id < self._row_of_id_size
         row = dr.gather(mi.UInt32, self._row_of_id, bsdf_id, active)
 
-        cos_view = si.wi.z
+        cos_view = dr.dot(si.wi, normal)
         side = dr.select(cos_view < 0, mi.UInt32(1), mi.UInt32(0))
         k_last = self.view_nodes - 1
         position = dr.clip((dr.abs(cos_view) - MIN_VIEW_COSINE) / (1.0 - MIN_VIEW_COSINE), 0.0, 1.0) * k_last
@@ -283,7 +303,7 @@ class SceneLobes:
         lanes without a fitted lobe (delta, unsupported, no hit, back side of a
         one-sided BSDF, zero energy).
         """
-        w_d, w_g, s, valid = self._fitted(si, active)
+        w_d, w_g, s, valid = self._fitted(si, active, self.local_normals(si, active))
         return w_d, w_g, dr.minimum(s, self.max_exponent), valid
 
     def coefficients(self, si: mi.SurfaceInteraction3f,
@@ -314,13 +334,15 @@ class SceneLobes:
         fitted exponent before the band-limit clamp; None without product lobes)."""
         if not self.has_product_lobes:
             return [], None, mi.Bool(False)
-        w_d, w_g, s_fitted, use_product = self._fitted(si, active)
+        local_normal = self.local_normals(si, active)
+        w_d, w_g, s_fitted, use_product = self._fitted(si, active, local_normal)
         s = dr.minimum(s_fitted, self.max_exponent)
 
         wi = si.wi
-        side = dr.select(wi.z < 0, -1.0, 1.0)
-        normal = grid_from_world(si.sh_frame.n * side)
-        mirror = grid_from_world(si.to_world(mi.Vector3f(-wi.x, -wi.y, wi.z)))
+        cos_view = dr.dot(wi, local_normal)
+        side = dr.select(cos_view < 0, -1.0, 1.0)
+        normal = grid_from_world(si.to_world(local_normal * side))
+        mirror = grid_from_world(si.to_world(dr.fma(local_normal, 2.0 * cos_view, -wi)))
 
         def rotated_lobes(w_d, w_g, s, normal, mirror):
             glossy = zonal_to_sh([w_g * lam for lam in phong_attenuation(s, self.n_bands)], mirror)
