@@ -11,8 +11,9 @@ point with a smooth BSDF, with the strategy (:mod:`.strategy`) of the lane's
 material: the product, the product carrying every sample, or the environment
 alone (Mitsuba's own envmap sampling, MIS-compensated like the product:
 :class:`~mitsuba_shsampling.envmap.emitter.EmitterDirections`). Materials without a product lobe
-(anisotropic, transmissive and frame-perturbing BSDFs) use the environment
-alone. With ``strategy`` ``auto`` the integrators choose per material before
+(transmissive BSDFs) use the environment alone; anisotropic BSDFs have an
+isotropic proxy, ``bumpmap``/``normalmap`` their nested BSDF's lobe about the
+perturbed normal (:mod:`~mitsuba_shsampling.lobes.perturbed_frames`). With ``strategy`` ``auto`` the integrators choose per material before
 the first pass (:mod:`.chooser`). Mitsuba's emitter sampling is left with the
 other emitters.
 """

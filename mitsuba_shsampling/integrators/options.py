@@ -129,8 +129,8 @@ class ProductOptions(PluginOptions):
         "runs, for BSDFs without a Dirac part; the others use ``product``), or ``auto``: before "
         "the first pass each material gets the strategy that minimises the predicted image error "
         "at equal time, from the variance of each strategy at the camera's first hits and pilot "
-        "pass times (see integrators/chooser.py). Materials without a product lobe (anisotropic, "
-        "transmissive, ``bumpmap``/``normalmap``) always use ``environment``."))
+        "pass times (see integrators/chooser.py). Materials without a product lobe "
+        "(transmissive BSDFs) use the environment strategies only."))
     max_bands: int = dataclasses.field(default=DEFAULT_MAX_BANDS, metadata=_doc(
         f"Cap on the SH band count of the lobe proxies ({MIN_BANDS}..{MAX_BANDS}); the scene's "
         "band count follows its sharpest lobe, and sharper lobes are widened to what the cap "

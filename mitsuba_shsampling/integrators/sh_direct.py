@@ -33,9 +33,10 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     material before the first pass. Strategy and BSDF samples are combined
     with the power heuristic using sample-count fractions, exactly as
     :monosp:`direct` combines its strategies. Other emitters (area, point,
-    ...) use Mitsuba's emitter sampling. BSDFs without a product lobe
-    (anisotropic, transmissive, ``bumpmap``/``normalmap``) sample the
-    environment alone from the same (MIS-compensated) pyramid; delta BSDFs
+    ...) use Mitsuba's emitter sampling. Transmissive BSDFs have no product
+    lobe and sample the environment alone (MIS-compensated); ``bumpmap`` and
+    ``normalmap`` are product-sampled with their nested BSDF's lobe about the
+    perturbed normal; delta BSDFs
     and scenes without an ``envmap`` use Mitsuba's own sampling and build
     nothing. With ``bsdf_samples`` 0, unlike :monosp:`direct`, the Dirac
     components of a BSDF (glass, a plastic's coating, a mirror) still get one
