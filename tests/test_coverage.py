@@ -210,6 +210,9 @@ def test_bsdfs_without_a_product_lobe_choose_between_the_environment_strategies_
     bumped_glass = {"type": "bumpmap", "arbitrary": {"type": "bitmap", "bitmap": HEIGHT, "raw": True},
                     "bsdf": BSDFS["roughdielectric"]}
     assert strategies_of(bumped_glass) == ["environment", "environment_only"]
+    bumped_normal_map = {"type": "bumpmap", "arbitrary": {"type": "bitmap", "bitmap": HEIGHT, "raw": True},
+                         "bsdf": BSDFS["normalmap"]}
+    assert strategies_of(bumped_normal_map) == ["environment", "environment_only"]
 
 
 @pytest.mark.parametrize("name", ["bumpmap", "normalmap"])

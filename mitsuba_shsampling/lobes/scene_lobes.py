@@ -111,7 +111,10 @@ def lobe_support(bsdf: mi.BSDF) -> str:
     """
     if bsdf.class_name() in FRAME_WRAPPERS:
         nested = nested_bsdf(bsdf)
-        return "unsupported" if nested is None else lobe_support(nested)
+        # One perturbation per lane is modelled: a wrapper of a wrapper has no lobe.
+        if nested is None or nested.class_name() in FRAME_WRAPPERS:
+            return "unsupported"
+        return lobe_support(nested)
     flags = int(bsdf.flags())
     smooth = int(mi.BSDFFlags.Diffuse) | int(mi.BSDFFlags.Glossy)
     if not flags & smooth:
@@ -178,7 +181,8 @@ class SceneLobes:
             params = self._fit_bsdf(nested_bsdf(bsdf) if wrapper else bsdf, uvs) if support == "product" else None
             why = None
             if support == "unsupported":
-                why = ("its nested BSDF is transmissive or not found" if wrapper else "it is transmissive")
+                why = ("its nested BSDF is transmissive, itself a wrapper of the shading frame, or not found"
+                       if wrapper else "it is transmissive")
             elif support == "product" and not self._fit_is_usable(params):
                 support = "unsupported"
                 # An emitter's own shape gets a black BSDF by default: nothing
