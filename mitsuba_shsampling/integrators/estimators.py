@@ -70,6 +70,9 @@ def environment_sample(scene, si, bsdf, ctx, d: mi.Vector3f, pdf: mi.Float, acti
     weight. Every environment strategy of every integrator here ends in this."""
     act = mi.Bool(active) & (pdf > 0)
     bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
+    # Where the BSDF reflects nothing (below an opaque surface's horizon) the sample is 0
+    # whatever the visibility: no shadow ray. Mitsuba's `direct` traces it first.
+    act &= dr.any(bsdf_val != 0.0)
     act &= ~scene.ray_test(si.spawn_ray(d), act)
     radiance = scene.environment().eval(environment_ray_target(d), act)
     return dr.select(act, bsdf_val * radiance * (weight(bsdf_pdf) / pdf), 0.0)
