@@ -23,10 +23,11 @@ from mitsuba_shsampling.integrators.chooser import (LEAN, Pilots, camera_frames,
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
 from mitsuba_shsampling.integrators.strategy import Strategy  # noqa: E402
+from mitsuba_shsampling.report.metrics import pixel_variance  # noqa: E402
 
 from test_integrators import MATERIALS, assert_unbiased, make_scene  # noqa: E402
 
-LUMINANCE = [0.2126, 0.7152, 0.0722]
+
 E, EO, P, PO = Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY, Strategy.PRODUCT, Strategy.PRODUCT_ONLY
 
 #: Pilot pass times of a scene filled by one material: the product's code costs every
@@ -154,14 +155,29 @@ def test_predicted_variance_ratios_match_the_rendered_ones(case):
 
     def rendered(strategy):
         integrator = mi.load_dict({"type": "sh_direct", "strategy": strategy.label})
-        images = np.stack([np.tensordot(np.array(mi.render(scene, integrator=integrator, spp=16, seed=k)),
-                                        LUMINANCE, axes=([2], [0])) for k in range(32)])
-        return images.var(axis=0, ddof=1).mean()
+        images = np.stack([np.array(mi.render(scene, integrator=integrator, spp=16, seed=k)) for k in range(32)])
+        return pixel_variance(images).mean()
 
     measured_env = rendered(E)
     for strategy in (P, PO):
         measured, expected = rendered(strategy) / measured_env, predicted[strategy] / predicted[E]
         assert abs(np.log(measured / expected)) < np.log(1.5), (strategy.label, measured, expected)
+
+
+def test_predicted_variances_are_averaged_over_colour_channels_as_the_reports_mse():
+    """The report's MSE averages the channels' squared errors (report.metrics), so the
+    prediction does too: a sky of blue alone has a third of the grey sky's variance
+    (in luminance it would have 0.07^2 of it, and a strategy that is poor in the blue
+    sky of a sunny map would look good)."""
+    image = window_latlong(64, 128, direction=(0.3, 0.5, 0.8))
+    variances = []
+    for tint in ([1.0, 1.0, 1.0], [0.0, 0.0, 1.0]):
+        scene = floor_scene({"type": "roughconductor", "alpha": 0.2}, envmap_emitter(image * np.float32(tint)))
+        env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+        si, bsdf_ptr, _ = camera_frames(scene, scene.sensors()[0], count=256)
+        variances.append(np.mean(frame_variances(env, si, bsdf_ptr, 1, 1), axis=0))
+    grey, blue = variances
+    assert np.allclose(blue / grey, 1 / 3, rtol=1e-3), blue / grey
 
 
 # ------------------------------------------------------------ the pilots and the shared variance

@@ -50,7 +50,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..report.metrics import luminance
+from ..report.metrics import pixel_variance
 from .estimators import environment_ray_target, mis_weight
 from .strategy import Strategy
 
@@ -92,8 +92,9 @@ class MaterialChoice:
     share: float
     """Share of the film's camera samples that see it."""
     variance: dict
-    """Strategy -> predicted variance it adds to the film (luminance^2 per camera sample,
-    over the film; calibrated by the pilots where they ran)."""
+    """Strategy -> predicted variance it adds to the film (squared error per colour channel
+    and camera sample, averaged over the channels and the film; calibrated by the pilots
+    where they ran)."""
     predicted_gain: float
     """Predicted variance of the material's best environment strategy over that of the
     chosen one, at equal samples (1 where an environment strategy is chosen)."""
@@ -118,7 +119,8 @@ class StrategyChoice:
     """Time the choice took (frames, quadrature, pilots), spent once per scene."""
     shared_variance: float = 0.0
     """``S``: the film's variance that no environment strategy changes (quadrature units:
-    luminance^2 per camera sample, averaged over the film), from the pilot images."""
+    squared error per colour channel and camera sample, averaged over the channels and
+    the film), from the pilot images."""
     pilot_variance: dict = dataclasses.field(default_factory=dict)
     """Pilot -> (predicted, measured) film variance of its passes (quadrature units): how well
     the quadrature, before calibration and with ``S``, matches the pilot images (the
@@ -180,13 +182,13 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     """Variance of the environment estimator at each shading point, per strategy.
 
     Returns an array (points, 4), indexed by :class:`Strategy`: the variance
-    (luminance^2) of one lane's environment estimate with ``n_e`` strategy
-    samples and ``n_b`` BSDF samples (power heuristic on sample-count
-    fractions), or with ``n_e + n_b`` strategy samples for the strategies that
-    carry every sample. NaN where no product is built. At points without a
-    product lobe the product strategies are what such a lane runs: the
-    environment alone. Visibility counts: the
-    integrand is BSDF x radiance x a shadow ray's verdict.
+    (averaged over the colour channels, as the report's MSE is) of one lane's
+    environment estimate with ``n_e`` strategy samples and ``n_b`` BSDF samples
+    (power heuristic on sample-count fractions), or with ``n_e + n_b`` strategy
+    samples for the strategies that carry every sample. NaN where no product is
+    built. At points without a product lobe the product strategies are what such
+    a lane runs: the environment alone. Visibility counts: the integrand is
+    BSDF x radiance x a shadow ray's verdict, per channel.
 
     The integrals E[w^2 f^2 / p] and E[w f] are estimated with ``directions``
     samples per point from an equal mixture of the BSDF's sampling, the two
@@ -231,14 +233,17 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     value, p_bsdf = bsdf.eval_pdf(ctx, si, wo)
     radiance = env.emitter.eval(environment_ray_target(d))
     visible = ~env.scene.ray_test(si.spawn_ray(d))
-    f = dr.select(visible, mi.luminance(value) * mi.luminance(radiance), 0.0)
+    # Per colour channel: the report's MSE averages the channels' squared errors
+    # (report.metrics), and a strategy can be good in luminance and poor in blue
+    # (a sun-following strategy in the shadow of a blue sky).
+    channels = [dr.select(visible, value[c] * radiance[c], 0.0) for c in range(len(value))]
     p_env = env.env_directions.pdf(d)
     p_plain_env = env.env_plain.pdf(d)
     p_product = dr.select(has_lobe, env.warp.pdf(coeffs, d, proxy), 0.0) if product else mi.Float(0.0)
     p_plain = dr.select(has_lobe, env.warp_plain.pdf(coeffs, d, proxy), 0.0) if plain else mi.Float(0.0)
     mixture = 0.2 * (p_bsdf + p_env + p_plain_env + dr.select(has_lobe, p_product, p_env)
                      + dr.select(has_lobe & plain, p_plain, p_env))
-    dr.eval(f, mixture, p_bsdf, p_env, p_plain_env, p_product, p_plain, has_lobe)
+    dr.eval(channels, mixture, p_bsdf, p_env, p_plain_env, p_product, p_plain, has_lobe)
 
     # The moments, per shading point, in float64 on the host. Each strategy's variance
     # is estimated as the mean of (Y - I)^2 p / q, Y = w f / p its sample's value and
@@ -248,12 +253,12 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     def per_point(x):
         return np.broadcast_to(np.asarray(x.numpy(), dtype=np.float64), (lanes,)).reshape(points, directions)
 
-    f, q = per_point(f), per_point(mixture)
+    channels, q = [per_point(f) for f in channels], per_point(mixture)
     p_bsdf, p_env, p_plain_env = per_point(p_bsdf), per_point(p_env), per_point(p_plain_env)
     p_product, p_plain = per_point(p_product), per_point(p_plain)
     lobed = per_point(mi.Float(has_lobe))[:, 0] > 0
     with np.errstate(divide="ignore", invalid="ignore"):
-        f = np.where(q > 0, f, 0.0)
+        channels = [np.where(q > 0, f, 0.0) for f in channels]
         inv_q = np.where(q > 0, 1.0 / q, 0.0)
 
         def one_sample_variance(weighted, pdf):
@@ -267,11 +272,14 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
             a2, b2 = (frac_e * pdf) ** 2, (frac_b * p_bsdf) ** 2
             w = np.where(pdf > 0, a2 / (a2 + b2), 0.0) if n_b else np.where(pdf > 0, 1.0, 0.0)
             w_b = np.where(p_bsdf > 0, 1.0 - w, 0.0)
-            var = one_sample_variance(w * f, pdf) / n_e if n_e else 0.0
-            return var + (one_sample_variance(w_b * f, p_bsdf) / n_b if n_b else 0.0)
+
+            def channel(f):
+                var = one_sample_variance(w * f, pdf) / n_e if n_e else 0.0
+                return var + (one_sample_variance(w_b * f, p_bsdf) / n_b if n_b else 0.0)
+            return np.mean([channel(f) for f in channels], axis=0)
 
         def alone_variance(pdf):
-            return one_sample_variance(f, pdf) / (n_e + n_b)
+            return np.mean([one_sample_variance(f, pdf) for f in channels], axis=0) / (n_e + n_b)
 
         result = np.full((points, len(Strategy)), np.nan)
         result[:, Strategy.ENVIRONMENT] = mis_variance(p_env)
@@ -302,8 +310,8 @@ class Pilots:
     pass_time: dict
     """Pilot -> pass time (s), the fastest of the timed passes."""
     image_variance: dict = dataclasses.field(default_factory=dict)
-    """Pilot -> per-pixel luminance variance of one pilot pass, averaged over the film
-    (from its pilot images, one per round of pilots)."""
+    """Pilot -> per-pixel variance of one pilot pass (channel-averaged, as the report's
+    MSE), averaged over the film (from its pilot images, one per round of pilots)."""
     spp: int = 1
     """Samples per pixel of a pilot pass."""
     shared_variance: float | None = None
@@ -364,12 +372,12 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
                 if round_ > 0:
                     times[name].append(elapsed)
                 if image is not None:
-                    images[name].append(luminance(np.asarray(image, dtype=np.float64)))
+                    images[name].append(np.asarray(image, dtype=np.float64))
     finally:
         env.warp, env.warp_plain = warps
         table.assign(saved)
-    variance = {name: float(np.mean(np.var(np.stack(i), axis=0, ddof=1)))
-                for name, i in images.items() if len(i) > 1}
+    # The report's measure of noise (report.metrics): per-pixel variance, channel-averaged.
+    variance = {name: float(np.mean(pixel_variance(np.stack(i)))) for name, i in images.items() if len(i) > 1}
     return Pilots({name: min(t) for name, t in times.items()}, variance, spp)
 
 
