@@ -13,9 +13,9 @@ alone (Mitsuba's own envmap sampling, MIS-compensated like the product:
 :class:`~mitsuba_shsampling.envmap.emitter.EmitterDirections`). Materials without a product lobe
 (transmissive BSDFs) use the environment alone; anisotropic BSDFs have an
 isotropic proxy, ``bumpmap``/``normalmap`` their nested BSDF's lobe about the
-perturbed normal (:mod:`~mitsuba_shsampling.lobes.perturbed_frames`). With ``strategy`` ``auto`` the integrators choose per material before
-the first pass (:mod:`.chooser`). Mitsuba's emitter sampling is left with the
-other emitters.
+perturbed normal (:mod:`~mitsuba_shsampling.lobes.perturbed_frames`). With
+``strategy`` ``auto`` the integrators choose per material before the first pass
+(:mod:`.chooser`). Mitsuba's emitter sampling is left with the other emitters.
 """
 
 from __future__ import annotations
