@@ -67,6 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
                               "multi-bounce methods path and sh_path at that depth (default %(default)s)")
     compare.add_argument("--convergence-max-spp", type=int, default=None,
                          help="largest spp of the convergence sweep (default 4 x spp, 0 disables)")
+    compare.add_argument("--no-freeze", action="store_true",
+                         help="trace every pass instead of replaying a dr.freeze recording of it (the "
+                              "pass times then include Python's tracing)")
 
     bench = sub.add_parser("bench", parents=[common], help="run the sampler benchmarks and an error-vs-time sweep")
     bench.add_argument("--out", default="bench", help="output folder (default %(default)s)")
@@ -117,7 +120,8 @@ def _compare(args) -> int:
                                methods=tuple(methods) if methods else None, envmap=args.envmap,
                                max_depth=args.max_depth, seed=args.seed,
                                convergence_max_spp=args.convergence_max_spp,
-                               cache_dir=args.cache_dir, progress=not args.no_progress)
+                               cache_dir=args.cache_dir, progress=not args.no_progress,
+                               freeze=not args.no_freeze)
     report = run_compare(paths, settings)
     _print_summary(report)
     print(f"\nreport: {os.path.join(os.path.abspath(args.out), 'index.html')}")

@@ -137,6 +137,8 @@ def render_file(args) -> dict:
     import numpy as np
     from tqdm import tqdm
 
+    from .frozen import FrozenPass
+
     path = resolve_scene(args.scene)
     defines = parse_defines(args.defines)
     output = args.output or os.path.splitext(os.path.basename(path))[0] + ".exr"
@@ -158,9 +160,15 @@ def render_file(args) -> dict:
     start = time.perf_counter()
     with tqdm(total=spp, unit="spp", desc=os.path.basename(path), disable=args.no_progress,
               file=sys.stderr) as bar:
+        frozen = {}
         for k, pass_spp in enumerate(plan):
-            image = np.array(mi.render(scene, sensor=sensor, integrator=integrator, spp=pass_spp,
-                                       seed=args.seed + k), dtype=np.float64)
+            if k == 0 or len(plan) < 3:  # the first pass compiles; few passes are not worth a recording
+                image = mi.render(scene, sensor=sensor, integrator=integrator, spp=pass_spp, seed=args.seed + k)
+            else:  # later ones replay a recording of one pass (no re-tracing: see frozen.py)
+                if pass_spp not in frozen:
+                    frozen[pass_spp] = FrozenPass(scene, sensor, integrator, pass_spp)
+                image = frozen[pass_spp](args.seed + k)
+            image = np.array(image, dtype=np.float64)
             total = pass_spp * image if total is None else total + pass_spp * image
             bar.update(pass_spp)
     elapsed = time.perf_counter() - start

@@ -21,6 +21,8 @@ import numpy as np
 import mitsuba_shsampling  # noqa: F401  (points Dr.Jit at a usable libLLVM first)
 import mitsuba as mi
 
+from mitsuba_shsampling.frozen import FrozenPass
+
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -33,6 +35,7 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=4)
     parser.add_argument("--passes", type=int, default=16)
     parser.add_argument("--json", default=None)
+    parser.add_argument("--no-freeze", action="store_true", help="time traced passes (tracing included)")
     args = parser.parse_args()
 
     mi.set_variant("llvm_ad_rgb")
@@ -43,12 +46,17 @@ def main() -> None:
     integrators = {text: mi.load_dict(json.loads(text)) for text in args.integrators}
     for integrator in integrators.values():  # compile outside the timed passes
         np.array(mi.render(scene, integrator=integrator, spp=args.spp, seed=10_000))
+    # Then record each pass once (as compare does) unless --no-freeze: timed passes replay it.
+    passes = {name: FrozenPass(scene, scene.sensors()[0], integrator, args.spp, enabled=not args.no_freeze)
+              for name, integrator in integrators.items()}
+    for frozen in passes.values():
+        np.array(frozen(10_001))
     times = {name: [] for name in integrators}
     images = {name: [] for name in integrators}
     for k in range(args.passes):
-        for name, integrator in integrators.items():
+        for name in integrators:
             start = time.perf_counter()
-            image = np.array(mi.render(scene, integrator=integrator, spp=args.spp, seed=k))
+            image = np.array(passes[name](k))
             times[name].append(time.perf_counter() - start)
             images[name].append(image[..., :3] @ LUMINANCE)
 
@@ -67,7 +75,7 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"scene": args.scene, "envmap": args.envmap, "res": args.res, "spp": args.spp,
-                       "passes": args.passes, "rows": rows}, f, indent=2)
+                       "passes": args.passes, "frozen": {name: p.frozen for name, p in passes.items()}, "rows": rows}, f, indent=2)
 
 
 if __name__ == "__main__":

@@ -60,6 +60,8 @@ import mitsuba_shsampling  # noqa: F401  (points Dr.Jit at a usable libLLVM firs
 import drjit as dr
 import mitsuba as mi
 
+from mitsuba_shsampling.frozen import FrozenPass
+
 LANES_UNIT = 2**20
 """Times are reported per this many lanes."""
 
@@ -329,10 +331,20 @@ def measure_passes(scene: mi.Scene, spp: int, repeats: int) -> dict[str, dict]:
     for seed in range(repeats):
         for key, integrator in integrators.items():
             costs[key].append(launch(render(integrator, seed)))
+    # The same passes replayed from a dr.freeze recording (what compare times): the
+    # difference in wall time is the tracing that freezing removes.
+    frozen = {key: FrozenPass(scene, scene.sensors()[0], integrator, spp) for key, integrator in integrators.items()}
+    for key, frozen_pass in frozen.items():
+        launch(lambda: frozen_pass(10_002))  # records
+    frozen_wall = {key: [] for key in integrators}
+    for seed in range(repeats):
+        for key, frozen_pass in frozen.items():
+            frozen_wall[key].append(launch(lambda: frozen_pass(seed)).wall_ms)
     return {key: dict(kernels=runs[0].kernels, kernel_ops=alone_ops[key], shared_kernel_ops=runs[0].ops,
                       execution_ms=statistics.median(r.execution_ms for r in runs),
                       execution_ms_runs=[r.execution_ms for r in runs],
-                      wall_ms=statistics.median(r.wall_ms for r in runs))
+                      wall_ms=statistics.median(r.wall_ms for r in runs),
+                      frozen_wall_ms=statistics.median(frozen_wall[key]), frozen=frozen[key].frozen)
             for key, runs in costs.items()}
 
 
@@ -421,6 +433,8 @@ def main() -> None:
           f"{args.repeats}; /Mi: over Mitsuba's envmap sample_direction; /dir: over direct's pass")
     print("pass wall time (ms, median; tracing included): "
           + ", ".join(f"{key} {cost['wall_ms']:.0f}" for key, cost in pass_costs.items()))
+    print("pass wall time (ms, median; frozen replay, as compare times it): "
+          + ", ".join(f"{key} {cost['frozen_wall_ms']:.0f}" for key, cost in pass_costs.items()))
     print("pass kernel ops with all three integrators alive (the kernels timed): "
           + ", ".join(f"{key} {cost['shared_kernel_ops']}" for key, cost in pass_costs.items()))
     if args.json:

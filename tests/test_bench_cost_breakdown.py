@@ -35,6 +35,8 @@ def test_every_stage_and_pass_is_measured_and_the_product_pass_has_the_most_oper
         assert row["kernels"] == (0 if key == "proxy_levels" else 1), key  # a difference, or one kernel
     for key in PASSES:
         assert rows[("pass", key)]["lanes"] == report["camera_samples"] == 24 * 24
+    for key in PASSES:  # each pass is also timed replayed from a dr.freeze recording
+        assert rows[("pass", key)]["frozen"] and rows[("pass", key)]["frozen_wall_ms"] > 0, key
     ops = {key: rows[("pass", key)]["kernel_ops"] for key in PASSES}
     assert ops["sh_direct_product"] > ops["sh_direct_environment"] > 0 and ops["direct"] > 0
     # The whole walk is its levels, the descent and the placement (each kernel also loads

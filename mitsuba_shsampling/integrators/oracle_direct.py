@@ -69,8 +69,13 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
         self.options = options = OracleOptions.from_properties(props)
         self.scenes = SceneCache(lambda scene: OracleEnvironment(scene, options))
 
+    def prepare_scene(self, scene, sensor=0):
+        """The per-scene state, built (or rebuilt) on the host before a pass is traced
+        (see ``sh_direct``'s ``prepare_scene``)."""
+        return self.scenes.get(scene)
+
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        self.scenes.get(scene)  # build host-side state before tracing the pass
+        self.prepare_scene(scene, sensor)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):

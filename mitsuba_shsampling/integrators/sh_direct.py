@@ -65,14 +65,22 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         self.scenes = SceneCache(lambda scene: ProductEnvironment(scene, options, carry_all))
         self.chooser = StrategyChooser(options.emitter_samples, options.bsdf_samples)
 
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        if self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting): render as configured
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
-        env = self.scenes.get(scene)  # build host-side state before tracing the pass
+    def prepare_scene(self, scene, sensor=0):
+        """What :meth:`render` does on the host before it traces a pass: build (or
+        rebuild) the per-scene state and, with ``strategy`` ``auto``, choose each
+        material's strategy (pilot passes) the first time. Returns the state.
+        :class:`~mitsuba_shsampling.frozen.FrozenPass` calls it before each replay,
+        which runs no Python."""
+        env = self.scenes.get(scene)
         def pilot_pass(pilot_spp, pilot_seed):
             return super(SHDirectIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
 
         self.chooser.before_render(env, scene, sensor, pilot_pass)
+        return env
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting) renders as configured
+            self.prepare_scene(scene, sensor)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def choice(self, scene):

@@ -98,9 +98,12 @@ class SHPRBIntegrator(RBIntegrator):
     # state (pilot primal passes); the derivative passes, which replay the primal
     # pass themselves, and the traced passes take it as it is.
 
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        if self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting): render as configured
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
+    def prepare_scene(self, scene, sensor=0):
+        """What :meth:`render` does on the host before it traces a pass: build (or
+        rebuild) the per-scene state and, with ``strategy`` ``auto``, choose each
+        material's strategy (pilot passes) the first time. Returns the state.
+        :class:`~mitsuba_shsampling.frozen.FrozenPass` calls it before each replay,
+        which runs no Python."""
         stale_ok = self._renders_since_build + 1 < self.options.rebuild_interval
         state = self.scenes.get(scene, stale_ok=stale_ok)
         self._renders_since_build = 0 if state is not self._state else self._renders_since_build + 1
@@ -109,6 +112,11 @@ class SHPRBIntegrator(RBIntegrator):
             return super(SHPRBIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
 
         self.chooser.before_render(state, scene, sensor, pilot_pass)
+        return state
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting) renders as configured
+            self.prepare_scene(scene, sensor)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def choice(self, scene):

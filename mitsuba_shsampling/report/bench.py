@@ -74,7 +74,7 @@ def error_time_sweep(out: str, scene_path: str, settings: dict, max_spp: int, re
             bar.update(1)
             curves[method.name] = []
             for i, spp in enumerate(spps):
-                image, elapsed = renderer.render(spp, 3_000 + i)
+                image, elapsed = renderer.timed_render(spp, 3_000 + i)  # each spp warmed and recorded
                 ref = refs[method.family].image
                 curves[method.name].append({"spp": renderer.actual_spp(), "time_s": elapsed,
                                             "mse": metrics.mse(image, ref),

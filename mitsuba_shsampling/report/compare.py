@@ -356,7 +356,7 @@ class SceneComparison:
         self.files = ReportFiles(os.path.abspath(settings.out), self.name)
         self.notes: list[str] = []
         self.render_settings = {"res": settings.res, "envmap": settings.envmap,
-                                "max_depth": settings.max_depth}
+                                "max_depth": settings.max_depth, "freeze": settings.freeze}
         try:
             probe, _ = load_for_settings(self.path, dict(self.render_settings, sampler="independent"))
         except SceneError as err:
@@ -451,11 +451,20 @@ class SceneComparison:
             self.bar.set_description(f"{self.name}/{sampler}/{m.name} compile")
             try:
                 renderers[m.name] = MethodRenderer(self.path, m, settings)
-                renderers[m.name].warm_up(admissible_spp(sampler, equal_ray_spp(self.settings.spp, m)))
+                renderers[m.name].warm_up(admissible_spp(sampler, equal_ray_spp(self.settings.spp, m)),
+                                          record=False)
                 loaded.append(m)
             except Exception as err:
                 self.drop(m, sampler, err)
             self.bar.update(1)
+        # The frozen passes are recorded once every method's scene is loaded (MethodRenderer.record).
+        for m in list(loaded):
+            try:
+                renderers[m.name].record(admissible_spp(sampler, equal_ray_spp(self.settings.spp, m)))
+            except Exception as err:
+                self.drop(m, sampler, err)
+                loaded.remove(m)
+                del renderers[m.name]
         return renderers, loaded
 
     def run_sampler(self, sampler: str, methods: list[Method], refs: dict[str, Reference],
@@ -505,6 +514,7 @@ class SceneComparison:
         compare_with_baselines(results)
         for m in methods:
             results[m.name].strategy_choice = strategy_choice(renderers[m.name])
+            results[m.name].frozen = renderers[m.name].frozen
         # What actually rendered, read back from the sensor the passes used.
         sensor = next(iter(renderers.values())).sensor if renderers else None
         run = RunResult(sampler=sampler, methods=results, maps=ErrorMaps(files={}, scale={}),

@@ -14,7 +14,10 @@ the stratified/low-discrepancy samplers recompile for each new sample count
 untimed warm-up (:meth:`MethodRenderer.timed_render`), and so does the first render
 of a freshly loaded scene, which costs twice a later one even from cached kernels.
 No compile or set-up time enters a pass time, the equal-time budget or a
-convergence point.
+convergence point. After the warm-up each method's pass is recorded with
+``dr.freeze`` and later passes replay it (:mod:`mitsuba_shsampling.frozen`),
+Mitsuba's integrators and this project's alike: a pass time is the kernels'
+time, not Python's tracing (``compare --no-freeze`` times traced passes).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import numpy as np
 import mitsuba as mi
 
 from .. import scenes as builtin
+from ..frozen import FrozenPass
 from . import metrics, scene_setup
 from .methods import DIRECT, MULTI_BOUNCE, Method
 
@@ -101,15 +105,30 @@ class MethodRenderer:
         self.sampler_name = settings["sampler"]
         self.scene, self.sensor = load_for_settings(scene_path, settings, **method.scene_params)
         self.integrator = method.load_integrator(settings["max_depth"])
+        self.freeze = settings.get("freeze", True)
         self.first_render_s: float | None = None
         self.compile_time_s: float | None = None
         self.warm_spps: set[int] = set()
+        self._frozen: dict[int, FrozenPass] = {}
+
+    @property
+    def frozen(self) -> bool | None:
+        """Whether every recorded pass replays frozen (False where one fell back to
+        unfrozen renders, None before any was recorded or with freezing off)."""
+        if not self._frozen:
+            return None
+        return all(p.frozen for p in self._frozen.values())
 
     def render(self, spp: int, seed: int) -> tuple[np.ndarray, float]:
-        """One render: (image (H, W, C) float32, wall time in s)."""
+        """One render: (image (H, W, C) float32, wall time in s). A sample count that
+        :meth:`warm_up` recorded replays its frozen pass (:mod:`mitsuba_shsampling.frozen`)."""
+        frozen = self._frozen.get(spp)
         start = time.perf_counter()
-        image = np.array(mi.render(self.scene, sensor=self.sensor, integrator=self.integrator,
-                                   spp=spp, seed=seed), dtype=np.float32)
+        if frozen is not None:
+            image = frozen(seed)
+        else:
+            image = mi.render(self.scene, sensor=self.sensor, integrator=self.integrator, spp=spp, seed=seed)
+        image = np.array(image, dtype=np.float32)
         return image, time.perf_counter() - start
 
     def timed_render(self, spp: int, seed: int) -> tuple[np.ndarray, float]:
@@ -118,16 +137,30 @@ class MethodRenderer:
             self.warm_up(spp)
         return self.render(spp, seed)
 
+    def record(self, spp: int) -> None:
+        """Record the frozen pass at ``spp`` (untimed; nothing with ``freeze`` off), after a
+        plain render compiled it, built the integrator's state and chose its strategies.
+
+        Record only once every scene of the run is loaded: kernels that call a
+        BSDF or an emitter through a pointer record the set of such objects alive
+        in the process, and a scene loaded later makes the next replay record again."""
+        if self.freeze and spp not in self._frozen:
+            self._frozen[spp] = FrozenPass(self.scene, self.sensor, self.integrator, spp)
+            np.array(self._frozen[spp](SEED_WARMUP + 1))
+
     def actual_spp(self) -> int:
         """The sample count of the last render (samplers round some requests)."""
         return int(self.sensor.sampler().sample_count())
 
-    def warm_up(self, spp: int) -> float:
-        """Compile the kernels with one untimed render; returns its wall time (s).
+    def warm_up(self, spp: int, record: bool = True) -> float:
+        """Compile the kernels with one untimed render, then (with ``record``) record the
+        frozen pass (:meth:`record`); returns the first render's wall time (s).
 
         The compile time is that time minus the median of the next timed passes.
         """
         _, elapsed = self.render(spp, SEED_WARMUP)
+        if record:
+            self.record(spp)
         self.warm_spps.add(spp)
         if self.first_render_s is None:
             self.first_render_s = elapsed

@@ -58,6 +58,7 @@ class CompareSettings:
     convergence_max_spp: int | None = None  # None: 4 x spp; 0 disables the sweep
     cache_dir: str = DEFAULT_CACHE_DIR
     progress: bool = True
+    freeze: bool = True  # passes replay a dr.freeze recording (report/rendering.py)
 
 
 # One method ---------------------------------------------------------------------------------
@@ -115,6 +116,8 @@ class MethodResult:
     :param strategy_choice: what ``strategy`` ``auto`` chose before the first pass
         (:meth:`~mitsuba_shsampling.integrators.chooser.StrategyChoice.as_dict`), for the
         project's integrators; None otherwise.
+    :param frozen: its timed passes replayed a ``dr.freeze`` recording (False: recording
+        failed and they were traced; None: freezing off, or a report from before it).
     """
 
     label: str
@@ -128,6 +131,7 @@ class MethodResult:
     convergence: list[ConvergencePoint] = dataclasses.field(default_factory=list)
     oracle: bool = False
     strategy_choice: dict | None = None
+    frozen: bool | None = None
 
 
 # One run (scene x sampler) and one scene --------------------------------------------------------
