@@ -9,6 +9,7 @@ and where no product strategy pays, no product code is traced.
 
 import warnings
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -247,6 +248,30 @@ def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():
     assert len(rounds) == 4 and all(len(set(r)) == 1 for r in rounds) and len({r[0] for r in rounds}) == 4
     assert set(pilots.pass_time) == {LEAN, E.label, P.label} and pilots.image_variance == {}
     assert env.warp is not None and env.strategies.of(key) == P  # left as it was found
+
+
+def test_a_pilot_pass_is_timed_by_its_kernels_not_by_its_tracing():
+    """The render replays frozen passes (no tracing), so the pilots, traced each time,
+    count only the kernels' execution time: positive, and less than the wall time."""
+    import time
+
+    from mitsuba_shsampling.integrators.chooser import kernel_time
+    scene = floor_scene({"type": "diffuse"}, WINDOW, size=64)
+    integrator = mi.load_dict({"type": "sh_direct", "strategy": "product"})
+    mi.render(scene, integrator=integrator, spp=4)  # compiles
+
+    def one_pass():
+        image = mi.render(scene, integrator=integrator, spp=4, seed=1)
+        dr.eval(image)
+        dr.sync_thread()
+        return image
+
+    start = time.perf_counter()
+    image, seconds = kernel_time(one_pass)
+    wall = time.perf_counter() - start
+    assert 0.0 < seconds < wall
+    np.testing.assert_array_equal(np.array(image), np.array(mi.render(scene, integrator=integrator, spp=4, seed=1)))
+    assert not dr.flag(dr.JitFlag.KernelHistory)  # left as it was
 
 
 def test_the_render_after_the_choice_runs_the_chosen_strategy():

@@ -308,7 +308,7 @@ class Pilots:
     """What the pilot passes measured."""
 
     pass_time: dict
-    """Pilot -> pass time (s), the fastest of the timed passes."""
+    """Pilot -> pass time (s): the kernels' execution time, the fastest of the timed passes."""
     image_variance: dict = dataclasses.field(default_factory=dict)
     """Pilot -> per-pixel variance of one pilot pass (channel-averaged, as the report's
     MSE), averaged over the film (from its pilot images, one per round of pilots)."""
@@ -337,6 +337,24 @@ def film_variance_factor(film: mi.Film, spp: int) -> float:
     return ratio ** 2 / spp
 
 
+def kernel_time(run: Callable[[], object]) -> tuple[object, float]:
+    """``run()``'s result and the execution time (s) of the JIT kernels it launched
+    (``run`` waits for them). That is a pass's time as the render replays it from a
+    ``dr.freeze`` recording (``mitsuba_shsampling.frozen``): a pilot pass is traced
+    each time, and the tracing, which weighs more for the larger product kernel
+    (at 128 px, 14 ms of a 70 ms pass against 7 ms of `direct`'s 44), is no part
+    of a replayed pass."""
+    was_on = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()  # clears it
+    try:
+        result = run()
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was_on)
+    return result, 1e-3 * sum(k["execution_time"] for k in history if k["type"] == dr.KernelType.JIT)
+
+
 def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], object],
                        repeats: int = PILOT_REPEATS, spp: int = 1) -> Pilots:
     """Pass time (s) and image variance per candidate: ``candidates`` maps a name to
@@ -344,7 +362,7 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
     the kernel without product code (every material on the environment strategy);
     ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
     One warm-up pass per kernel, then ``repeats`` timed rounds, candidates
-    interleaved; the fastest time per candidate. Every round has its own seed
+    interleaved; the fastest time per candidate, as kernel time (:func:`kernel_time`). Every round has its own seed
     (:data:`PILOT_SEED`), and each pass's image counts towards its candidate's
     variance (warm-ups included: only their time is compile-bound). ``env`` is
     left as it was found."""
@@ -366,9 +384,7 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
         for round_ in range(repeats + 1):  # round 0 compiles each kernel once (the render reuses it)
             for name, assignment in candidates.items():
                 configure(assignment)
-                start = time.perf_counter()
-                image = render_pass(PILOT_SEED + round_)
-                elapsed = time.perf_counter() - start
+                image, elapsed = kernel_time(lambda: render_pass(PILOT_SEED + round_))
                 if round_ > 0:
                     times[name].append(elapsed)
                 if image is not None:
