@@ -126,7 +126,9 @@ the reference), so rare, very bright samples are in it; <b>pixel variance</b> is
 variance of one pass across the passes, shown as a false-colour map. Relative MSE is the mean of
 (x-ref)<sup>2</sup>/(ref<sup>2</sup>+0.01).</li>
 <li><b>Equal time</b>: each method renders at the spp its measured time per sample affords within the
-baseline's time per pass (median wall time of a warm pass; kernel compile time is listed apart).
+baseline's time per pass (median wall time of a warm pass, replayed from a <code>dr.freeze</code>
+recording of the pass for every method unless <code>--no-freeze</code>, so Python's tracing is not in
+it; kernel compile time is listed apart).
 <b>Efficiency</b> = 1/(expected MSE x time per pass).</li>
 <li><b>Tails</b> (luminance): the brightest pixel of any pass, the {metrics.TAIL_PERCENTILE:g} %
 percentile of |render - reference| over every pixel of every pass, and <b>fireflies</b>: pixels above
