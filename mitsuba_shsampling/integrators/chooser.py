@@ -578,6 +578,14 @@ class StrategyChooser:
         #: would see the pilot's configuration, and the pilots would not run what they time).
         self.piloting = False
 
+    def prepare(self, integrator: mi.SamplingIntegrator, env, scene: mi.Scene, sensor):
+        """:meth:`before_render` for a plugin derived from ``mi.SamplingIntegrator``
+        (``sh_direct``, ``sh_path``): its pilots render through Mitsuba's
+        ``SamplingIntegrator.render``, past the plugin's own. Returns ``env``."""
+        self.before_render(env, scene, sensor, lambda spp, seed: mi.SamplingIntegrator.render(
+            integrator, scene, sensor, seed, spp))
+        return env
+
     def before_render(self, env, scene: mi.Scene, sensor, render: Callable) -> None:
         """Choose for ``env`` if it awaits a choice. ``render(spp, seed)`` returns one
         pass's image with the integrator as it is (the pilots)."""

@@ -71,12 +71,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         material's strategy (pilot passes) the first time. Returns the state.
         :class:`~mitsuba_shsampling.frozen.FrozenPass` calls it before each replay,
         which runs no Python."""
-        env = self.scenes.get(scene)
-        def pilot_pass(pilot_spp, pilot_seed):
-            return super(SHDirectIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
-
-        self.chooser.before_render(env, scene, sensor, pilot_pass)
-        return env
+        return self.chooser.prepare(self, self.scenes.get(scene), scene, sensor)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting) renders as configured

@@ -56,17 +56,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         self.chooser = StrategyChooser(1, 1)
 
     def prepare_scene(self, scene, sensor=0):
-        """What :meth:`render` does on the host before it traces a pass: build (or
-        rebuild) the per-scene state and, with ``strategy`` ``auto``, choose each
-        material's strategy (pilot passes) the first time. Returns the state.
-        :class:`~mitsuba_shsampling.frozen.FrozenPass` calls it before each replay,
-        which runs no Python."""
-        env = self.scenes.get(scene)
-        def pilot_pass(pilot_spp, pilot_seed):
-            return super(SHPathIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
-
-        self.chooser.before_render(env, scene, sensor, pilot_pass)
-        return env
+        """The host-side work before a pass: state and choice (see ``sh_direct``'s)."""
+        return self.chooser.prepare(self, self.scenes.get(scene), scene, sensor)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting) renders as configured
