@@ -342,8 +342,7 @@ def kernel_time(run: Callable[[], object]) -> tuple[object, float]:
     (``run`` waits for them). That is a pass's time as the render replays it from a
     ``dr.freeze`` recording (``mitsuba_shsampling.frozen``): a pilot pass is traced
     each time, and the tracing, which weighs more for the larger product kernel
-    (at 128 px, 14 ms of a 70 ms pass against 7 ms of `direct`'s 44), is no part
-    of a replayed pass."""
+    (docs/MEASUREMENTS.md, "Frozen passes"), is no part of a replayed pass."""
     was_on = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()  # clears it
