@@ -149,3 +149,35 @@ def test_the_state_inputs_are_every_array_and_object_it_holds():
     found = held_inputs(outer)
     assert len(found) == 3  # each once, host values skipped
     assert any(isinstance(v, mi.Emitter) for v in found)
+
+
+def test_compares_timed_passes_replay_and_none_records(tmp_path, monkeypatch):
+    """In ``compare`` every method's pass is recorded after all the methods' scenes are loaded,
+    so no timed pass records (a scene loaded after a recording makes the next replay record)."""
+    import json
+
+    from mitsuba_shsampling import cli
+    from mitsuba_shsampling.report import rendering
+
+    recorded_while_timed, replayed = [], []
+    timed_render = rendering.MethodRenderer.render
+
+    def checked_render(self, spp, seed):
+        frozen = self._frozen.get(spp)
+        before = frozen.recordings if frozen is not None else None
+        result = timed_render(self, spp, seed)
+        if frozen is not None:
+            replayed.append(self.method.name)
+            if frozen.recordings != before:
+                recorded_while_timed.append((self.method.name, spp, seed))
+        return result
+
+    monkeypatch.setattr(rendering.MethodRenderer, "render", checked_render)
+    assert cli.main(["compare", builtin_scenes()["sphere_diffuse"], "--out", str(tmp_path), "--res", "16",
+                     "--spp", "2", "--passes", "3", "--ref-spp", "8", "--methods", "direct,direct_misc,sh_direct",
+                     "--convergence-max-spp", "0", "--cache-dir", str(tmp_path / "cache"), "--no-progress"]) == 0
+    assert recorded_while_timed == []
+    assert set(replayed) == {"direct", "direct_misc", "sh_direct"}
+    report = json.loads((tmp_path / "report.json").read_text())
+    methods = report["scenes"][0]["runs"][0]["methods"]
+    assert {name: entry["frozen"] for name, entry in methods.items()} == dict.fromkeys(methods, True)
