@@ -2,7 +2,7 @@
 
 A pass traced from Python pays its tracing on every call, and the product
 kernel's tracing most: at 128 px and 16 spp about half of a pass's wall time
-(docs/MEASUREMENTS.md, "Frozen passes"), 2-4 % at 480 x 360. A
+(docs/MEASUREMENTS.md, "Frozen passes"), 6-14 % at 480 x 360. A
 :class:`FrozenPass` records the kernels of its first call and replays them on
 later calls, for this project's integrators and Mitsuba's alike, so that
 timing compares kernels with kernels.
