@@ -87,7 +87,10 @@ class FrozenPass:
 
     ``FrozenPass(scene, sensor, integrator, spp)(seed)`` returns the image as
     ``mi.render(scene, sensor=sensor, integrator=integrator, spp=spp, seed=seed)``
-    would. With ``enabled=False`` it is exactly that call.
+    would. With ``enabled=False`` it is exactly that call. The first call records; on a
+    scene that has not rendered yet the second records once more (the first render sets
+    up state, e.g. the sampler's, that the second finds changed), so ``compare`` renders
+    each method once traced before it records.
     """
 
     def __init__(self, scene: mi.Scene, sensor, integrator: mi.Integrator, spp: int, enabled: bool = True):
