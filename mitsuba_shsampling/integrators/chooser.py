@@ -361,10 +361,10 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
     the kernel without product code (every material on the environment strategy);
     ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
     One warm-up pass per kernel, then ``repeats`` timed rounds, candidates
-    interleaved; the fastest time per candidate, as kernel time (:func:`kernel_time`). Every round has its own seed
-    (:data:`PILOT_SEED`), and each pass's image counts towards its candidate's
-    variance (warm-ups included: only their time is compile-bound). ``env`` is
-    left as it was found."""
+    interleaved; the fastest time per candidate, as kernel time
+    (:func:`kernel_time`). Every round has its own seed (:data:`PILOT_SEED`), and
+    each pass's image counts towards its candidate's variance (warm-ups included:
+    only their time is compile-bound). ``env`` is left as it was found."""
     table = env.strategies
     saved = {key: table.of(key) for key in table.ids}
     warps = env.warp, env.warp_plain

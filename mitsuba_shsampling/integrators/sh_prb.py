@@ -99,11 +99,8 @@ class SHPRBIntegrator(RBIntegrator):
     # pass themselves, and the traced passes take it as it is.
 
     def prepare_scene(self, scene, sensor=0):
-        """What :meth:`render` does on the host before it traces a pass: build (or
-        rebuild) the per-scene state and, with ``strategy`` ``auto``, choose each
-        material's strategy (pilot passes) the first time. Returns the state.
-        :class:`~mitsuba_shsampling.frozen.FrozenPass` calls it before each replay,
-        which runs no Python."""
+        """The host-side work before a pass (see ``sh_direct``'s), with the state rebuilt
+        at most every ``rebuild_interval`` renders."""
         stale_ok = self._renders_since_build + 1 < self.options.rebuild_interval
         state = self.scenes.get(scene, stale_ok=stale_ok)
         self._renders_since_build = 0 if state is not self._state else self._renders_since_build + 1

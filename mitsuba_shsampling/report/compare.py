@@ -447,12 +447,12 @@ class SceneComparison:
         settings = dict(self.render_settings, sampler=sampler)
         renderers: dict[str, MethodRenderer] = {}
         loaded = []
+        spps = {m.name: admissible_spp(sampler, equal_ray_spp(self.settings.spp, m)) for m in methods}
         for m in methods:
             self.bar.set_description(f"{self.name}/{sampler}/{m.name} compile")
             try:
                 renderers[m.name] = MethodRenderer(self.path, m, settings)
-                renderers[m.name].warm_up(admissible_spp(sampler, equal_ray_spp(self.settings.spp, m)),
-                                          record=False)
+                renderers[m.name].warm_up(spps[m.name], record=False)
                 loaded.append(m)
             except Exception as err:
                 self.drop(m, sampler, err)
@@ -460,7 +460,7 @@ class SceneComparison:
         # The frozen passes are recorded once every method's scene is loaded (MethodRenderer.record).
         for m in list(loaded):
             try:
-                renderers[m.name].record(admissible_spp(sampler, equal_ray_spp(self.settings.spp, m)))
+                renderers[m.name].record(spps[m.name])
             except Exception as err:
                 self.drop(m, sampler, err)
                 loaded.remove(m)
