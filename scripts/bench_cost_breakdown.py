@@ -177,7 +177,7 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
     """The stages of a product lane, their inputs evaluated beforehand (one kernel each)."""
     from mitsuba_shsampling.grid import Cell
     from mitsuba_shsampling.integrators.estimators import environment_ray_target
-    from mitsuba_shsampling.warp.hierarchy import descend_pyramid_sample, walk_sample
+    from mitsuba_shsampling.warp.hierarchy import descend_pyramid_sample, walk_sample_absolute
     from mitsuba_shsampling.warp.product import place_in_leaf
 
     lanes = dr.width(si)
@@ -197,11 +197,11 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
     weights = warp.weights(coeffs, proxy)
 
     def sh_levels():
-        cell, t, prob, valid, _ = walk_sample(weights, weights.sh_depth, u_product)
+        cell, t, prob, valid, _ = walk_sample_absolute(weights, weights.sh_depth, u_product)
         return cell.iz, cell.iphi, t, prob, valid
 
     def product_levels():
-        cell, t, prob, valid, _ = walk_sample(weights, weights.walk_depth, u_product)
+        cell, t, prob, valid, _ = walk_sample_absolute(weights, weights.walk_depth, u_product)
         return cell.iz, cell.iphi, t, prob, valid
 
     walked_iz, walked_iphi, walked_t, walked_prob, walked_valid = evaluated(*product_levels())

@@ -30,6 +30,7 @@ from mitsuba_shsampling.sweep import aggregate  # noqa: E402
 from mitsuba_shsampling.warp.oracle import OracleWarp  # noqa: E402
 
 from test_integrators import MATERIALS, assert_unbiased, make_scene  # noqa: E402
+from leaf_chi2 import LeafAlignedChiSquareTest  # noqa: E402
 
 #: Pyramid depth of the warp tests: chi2 bins can then sit inside single leaves.
 DEPTH = 6
@@ -81,12 +82,12 @@ def test_chi2_oracle_samples_follow_the_oracle_pdf_at_a_shading_point(sun_pyrami
     warp = OracleWarp(sun_pyramid, RESOLUTION)
     table = warp.tabulate(f)
     # In the grid frame chi2's (cos theta, phi) bins nest inside the leaves, where
-    # the pdf is bilinear (see tests/test_product.py:run_chi2).
-    test = chi2.ChiSquareTest(
+    # the pdf is bilinear (see tests/test_product.py:run_chi2 and tests/leaf_chi2.py).
+    test = LeafAlignedChiSquareTest(
         domain=chi2.SphericalDomain(),
         sample_func=lambda u: sun_pyramid.grid_from_world(warp.sample(f, table, u)[0]),
         pdf_func=lambda d: warp.pdf(f, table, sun_pyramid.world_from_grid(d)),
-        sample_dim=2, sample_count=400_000, res=1 << DEPTH, ires=16, seed=5)
+        sample_dim=2, sample_count=400_000, res=2 << DEPTH, seed=5)
     assert test.run(0.01), test.messages
 
 

@@ -16,6 +16,9 @@ approximations, float rounding): safe for MIS. Two trees exist:
   (0,0), (0,1), (1,0), (1,1) per cell, a the z half, b the phi half
   (:class:`QuadWeights` providers); the z half is chosen from the row sums,
   then the phi half within the chosen row;
+- :func:`walk_sample_absolute` / :func:`walk_pdf_absolute`: the quadtree for
+  providers whose weights are the children's absolute probabilities (they sum
+  to the parent's), which telescope: no clamp, no per-level probability;
 - :func:`walk_sample_1d` / :func:`walk_pdf_1d`: a binary tree over an
   interval (:class:`BinaryWeights` providers), for warps that split z and phi
   separately.
@@ -197,6 +200,73 @@ def walk_pdf(provider: QuadWeights, depth: int, z, phi):
     return leaf, t, dr.select(prob > 0, prob, 0.0), state
 
 
+def _split_absolute(w_lo, w_hi, u):
+    """One binary split of absolute weights (:func:`walk_sample_absolute`): (upper
+    half chosen, its weight, ``u`` rescaled into it). One division, for the
+    rescaled sample; the probability is not divided out."""
+    position = u * (w_lo + w_hi)
+    upper = position >= w_lo
+    chosen = dr.select(upper, w_hi, w_lo)
+    return upper, chosen, dr.clip((position - dr.select(upper, w_lo, 0.0)) / chosen, 0.0, LAST_BELOW_ONE)
+
+
+def _quad_split(w, uz, uphi):
+    """Choose one of four absolute weights (order (0,0), (0,1), (1,0), (1,1)):
+    the z half by the row sums, then the phi half within the row. Returns
+    (a, b, rescaled uz, rescaled uphi, the chosen weight)."""
+    a, _, uz = _split_absolute(w[0] + w[1], w[2] + w[3], uz)
+    b, chosen, uphi = _split_absolute(dr.select(a, w[2], w[0]), dr.select(a, w[3], w[1]), uphi)
+    return a, b, uz, uphi, chosen
+
+
+def walk_sample_absolute(provider: QuadWeights, depth: int, u: mi.Point2f):
+    """:func:`walk_sample` for a provider whose weights are *absolute*: each
+    child's probability of being reached, finite and non-negative, the four
+    summing to their parent's (1 at the root), e.g. a mixture of hierarchical
+    distributions (:class:`~.product.ProductWeights`).
+
+    The branch probabilities then telescope: the leaf's probability is its own
+    weight, up to the rounding of the sums (~1e-7 relative per level). So no
+    weight is clamped and no probability divided out at each split: one
+    division per split, for the rescaled sample, against three and the clamps
+    of the generic walk. :func:`walk_pdf_absolute` returns the same weight.
+    """
+    iz, iphi = mi.UInt32(0), mi.UInt32(0)
+    uz, uphi = dr.clip(u.x, 0.0, LAST_BELOW_ONE), dr.clip(u.y, 0.0, LAST_BELOW_ONE)
+    prob = mi.Float(1.0)
+    state = provider.root()
+    for level in range(depth):
+        cell = Cell(level, iz, iphi)
+        split = provider.children(state, cell)
+        a, b, uz, uphi, prob = _quad_split(split.weights, uz, uphi)
+        state = provider.advance(state, split.pending, cell, a, b)
+        iz = 2 * iz + dr.select(a, 1, 0)
+        iphi = 2 * iphi + dr.select(b, 1, 0)
+    return Cell(depth, iz, iphi), mi.Point2f(uz, uphi), prob, prob > 0, state
+
+
+def walk_pdf_absolute(provider: QuadWeights, depth: int, z, phi):
+    """:func:`walk_pdf` for the providers of :func:`walk_sample_absolute`: the
+    weight of the leaf holding (z, phi). Only the last level's weights are
+    used (Dr.Jit traces none of the others); the levels above only carry the
+    provider's state down.
+
+    Returns (leaf cell, probability of the leaf, provider state at the leaf).
+    """
+    iz, iphi = mi.UInt32(0), mi.UInt32(0)
+    prob = mi.Float(1.0)
+    state = provider.root()
+    for level in range(depth):
+        cell = Cell(level, iz, iphi)
+        split = provider.children(state, cell)
+        a, b = z >= cell.zm, phi >= cell.phim
+        prob = select_child(split.weights, a, b)
+        state = provider.advance(state, split.pending, cell, a, b)
+        iz = 2 * iz + dr.select(a, 1, 0)
+        iphi = 2 * iphi + dr.select(b, 1, 0)
+    return Cell(depth, iz, iphi), prob, state
+
+
 # --------------------------------------------------------------- binary tree
 
 def walk_sample_1d(provider: BinaryWeights, depth: int, u, x0: float, x1: float):
@@ -256,27 +326,18 @@ def descend_pyramid_sample(pyramid, cell: Cell, depth: int, u: mi.Point2f):
     product is carried down; :func:`descend_pyramid_pdf` evaluates the same
     probability for a given point. Weights of a cell reached with positive
     probability are finite and non-negative with a positive sum, so unlike
-    :func:`walk_sample` no clamping is needed: about half its work per level.
+    :func:`walk_sample` no clamping is needed, and the splits are those of
+    :func:`walk_sample_absolute` (one division each).
     """
     iz, iphi = cell.iz, cell.iphi
     uz, uphi = u.x, u.y
     cell_integral = leaf_integral = mi.Float(1.0)
     for level in range(cell.level, depth):
         w = pyramid.children(level, iz, iphi)
-        row_lo = w[0] + w[1]
-        total = row_lo + (w[2] + w[3])
         if level == cell.level:
-            cell_integral = total
-        p_lo = row_lo / total
-        a = uz >= p_lo
-        uz = dr.minimum((uz - dr.select(a, p_lo, 0.0)) / dr.select(a, 1.0 - p_lo, p_lo), LAST_BELOW_ONE)
-        left, right = dr.select(a, w[2], w[0]), dr.select(a, w[3], w[1])
-        p_left = left / (left + right)
-        b = uphi >= p_left
-        uphi = dr.minimum((uphi - dr.select(b, p_left, 0.0)) / dr.select(b, 1.0 - p_left, p_left), LAST_BELOW_ONE)
-        leaf_integral = dr.select(b, right, left)
-        iz = 2 * iz + dr.select(a, 1, 0)
-        iphi = 2 * iphi + dr.select(b, 1, 0)
+            cell_integral = (w[0] + w[1]) + (w[2] + w[3])
+        a, b, uz, uphi, leaf_integral = _quad_split(w, uz, uphi)
+        iz, iphi = 2 * iz + dr.select(a, 1, 0), 2 * iphi + dr.select(b, 1, 0)
     return Cell(depth, iz, iphi), mi.Point2f(uz, uphi), leaf_integral / cell_integral
 
 

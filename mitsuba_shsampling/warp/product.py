@@ -53,7 +53,7 @@ import mitsuba as mi
 from ..grid import Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of
 from .hierarchy import (Split, check_depth, descend_pyramid_pdf, descend_pyramid_sample, leaf_density,
-                        sample_leaf, select_child, walk_pdf, walk_sample)
+                        sample_leaf, select_child, walk_pdf_absolute, walk_sample_absolute)
 from .hsw import SHCellState, SHCellWeights
 from .proxy_lobe import ProxyLobe
 
@@ -113,8 +113,8 @@ class ProductState(NamedTuple):
 
     sh: SHCellState | None
     """The SH provider's state (None below the SH levels)."""
-    p_product: mi.Float
-    """Absolute probability of the current cell under the product part."""
+    product_mass: mi.Float
+    """(1 - e) x the product part's probability of the current cell: its share of the mixture W."""
     share: mi.Float | None
     """Per-lane defensive share (e, or 1 where the lobe has no mass); None at the root."""
     centre: tuple | None = None
@@ -123,16 +123,18 @@ class ProductState(NamedTuple):
 
 class ProductSplit(NamedTuple):
     sh: object
-    conditional: list
-    """The four children's conditional probabilities under the product part."""
+    numerators: list
+    """The four children's product weights (their environment integrals where the product has no mass)."""
+    mass_per_weight: mi.Float
+    """The product part's mass per unit of those weights: a child's product mass is the product of the two."""
     share: mi.Float
     centres: tuple | None
     """(cos, sin) of the children's phi centres (closed-form proxy levels)."""
 
 
 class ProductWeights:
-    """Weight provider for :func:`walk_sample` / :func:`walk_pdf`: a defensive
-    mixture of the product and the environment, in one walk.
+    """Weight provider for :func:`walk_sample_absolute` / :func:`walk_pdf_absolute`:
+    a defensive mixture of the product and the environment, in one walk.
 
     The target is the mixture (Hesterberg 1995)
 
@@ -144,10 +146,11 @@ class ProductWeights:
 
         W(c) = (1 - e) P_product(c) + e E(c) / E(root),
 
-    where P_product(c) = P_product(parent) x (product weight of c / sum of the
-    four) is carried down the walk and E is the pyramid's cell integral. The
-    children's W sum to the parent's, so the walk's branch probabilities
-    telescope to W(leaf), and the pdf is exactly q. Hence q >= e p_env: the
+    where (1 - e) P_product(c) = (1 - e) P_product(parent) x (product weight of
+    c / sum of the four) is carried down the walk and E is the pyramid's cell
+    integral. The children's W sum to the parent's, so the walk's branch
+    probabilities telescope to W(leaf) (:func:`walk_sample_absolute`), and the
+    pdf is exactly q. Hence q >= e p_env: the
     strategy reaches every lit direction whatever the lobe (clamped ringing,
     a proxy that misses part of the BSDF, non-finite coefficients), and its
     estimate is never more than 1/e worse than environment sampling.
@@ -176,7 +179,7 @@ class ProductWeights:
 
     def root(self) -> ProductState:
         # The share is only known once the root's product weights are (children of level 0).
-        return ProductState(self.sh.root(), mi.Float(1.0), None)
+        return ProductState(self.sh.root(), None, None)
 
     def children(self, state: ProductState, cell: Cell) -> Split:
         env = tuple(self.pyramid.children(cell.level, cell.iz, cell.iphi))
@@ -191,28 +194,40 @@ class ProductWeights:
         product = [dr.select(w > 0, w, 0.0) * e for w, e in zip(lobe_weights, env)]  # NaN -> 0 too
         total = (product[0] + product[1]) + (product[2] + product[3])
         ok = dr.isfinite(total) & (total > 0)
-        share = dr.select(ok, self.defensive_share, 1.0) if cell.level == 0 else state.share
+        if cell.level == 0:
+            share = dr.select(ok, self.defensive_share, 1.0)
+            mass = 1.0 - share
+        else:
+            share, mass = state.share, state.product_mass
         # Product weights are not additive: a child chosen with positive
         # probability can have all four of its own product weights at 0 (lobe
         # clamped where the light is). Its product part then follows the
         # environment, so no probability is lost.
         env_total = (env[0] + env[1]) + (env[2] + env[3])
-        conditional = [dr.select(ok, p / dr.select(ok, total, 1.0), e / dr.select(env_total > 0, env_total, 1.0))
-                       for p, e in zip(product, env)]
-        weights = tuple(dr.fma((1.0 - share) * state.p_product, c, share * self.inv_total * e)
-                        for c, e in zip(conditional, env))
-        return Split(weights, ProductSplit(sh_pending, conditional, share, centres))
+        numerators = [dr.select(ok, p, e) for p, e in zip(product, env)]
+        # One division per cell, not one per child and part: a division costs
+        # about ten multiplications, and the walks ran ~200 of them per lane.
+        mass_per_weight = mass / dr.select(ok, total, env_total)
+        # Where that is not finite (a dark cell, or sums that underflow) the
+        # product part splits evenly: the children's weights must still sum to
+        # the parent's, which the walks rely on (walk_sample_absolute).
+        even = ~dr.isfinite(mass_per_weight)
+        numerators = [dr.select(even, 1.0, n) for n in numerators]
+        mass_per_weight = dr.select(even, 0.25 * mass, mass_per_weight)
+        env_mass = share * self.inv_total
+        weights = tuple(dr.fma(mass_per_weight, n, env_mass * e) for n, e in zip(numerators, env))
+        return Split(weights, ProductSplit(sh_pending, numerators, mass_per_weight, share, centres))
 
     def advance(self, state: ProductState, pending, cell: Cell, a, b) -> ProductState:
         if cell.level >= self.walk_depth:
             return state  # below the product levels nothing is carried
-        chosen = select_child(pending.conditional, a, b)
+        chosen = select_child(pending.numerators, a, b)
         sh_state = self.sh.advance(state.sh, pending.sh, cell, a, b) if cell.level < self.sh_depth - 1 else None
         centre = None
         if sh_state is None and cell.level + 1 < self.walk_depth:  # the next level is a proxy level
             cos_l, sin_l, cos_r, sin_r = pending.centres
             centre = (dr.select(b, cos_r, cos_l), dr.select(b, sin_r, sin_l))
-        return ProductState(sh_state, state.p_product * chosen, pending.share, centre)
+        return ProductState(sh_state, pending.mass_per_weight * chosen, pending.share, centre)
 
 
 def place_in_leaf(pyramid, leaf: Cell, t: mi.Point2f, prob, valid, u: mi.Point2f):
@@ -289,7 +304,7 @@ class ProductWarp:
     def sample(self, coeffs, u: mi.Point2f, proxy: ProxyLobe | None = None):
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
         provider = self.weights(coeffs, proxy)
-        cell, t, prob, valid, _ = walk_sample(provider, provider.walk_depth, u)
+        cell, t, prob, valid, _ = walk_sample_absolute(provider, provider.walk_depth, u)
         # Below the product levels both parts of the mixture follow the
         # environment: its own pyramid finishes the walk.
         leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, cell, self.depth, t)
@@ -299,6 +314,6 @@ class ProductWarp:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
         z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
         provider = self.weights(coeffs, proxy)
-        cell, _, prob, _ = walk_pdf(provider, provider.walk_depth, z, phi)
+        cell, prob, _ = walk_pdf_absolute(provider, provider.walk_depth, z, phi)
         leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.depth, z, phi)
         return prob * p_leaf * leaf_pdf(self.pyramid, leaf, z, phi)
