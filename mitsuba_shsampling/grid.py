@@ -30,13 +30,14 @@ class Cell:
     """Bounds of the current cell of every lane at one level.
 
     ``iz`` and ``iphi`` may be per-lane ``mi.UInt32`` or Python ints; the bounds
-    are ``mi.Float`` (z0, z1, zm: lower, upper, middle z; likewise phi) and
-    ``area`` is the solid angle (a Python float, equal for all cells of a level).
+    are ``mi.Float`` (z0, z1, zm: lower, upper, middle z; likewise phi); the
+    extents ``dz``, ``dphi`` and the solid angle ``area`` are Python floats,
+    equal for all cells of a level.
     """
 
     def __init__(self, level: int, iz, iphi):
         self.level, self.iz, self.iphi = level, iz, iphi
-        dz, dphi = 2.0 / 2**level, TWO_PI / 2**level
+        self.dz, self.dphi = dz, dphi = 2.0 / 2**level, TWO_PI / 2**level
         self.z0 = dr.fma(mi.Float(iz), dz, -1.0)
         self.z1 = self.z0 + dz
         self.zm = self.z0 + 0.5 * dz

@@ -195,8 +195,8 @@ def walk_pdf(provider: QuadWeights, depth: int, z, phi):
         iz = 2 * iz + dr.select(a, 1, 0)
         iphi = 2 * iphi + dr.select(b, 1, 0)
     leaf = Cell(depth, iz, iphi)
-    t = mi.Point2f(dr.clip((z - leaf.z0) / (leaf.z1 - leaf.z0), 0.0, 1.0),
-                   dr.clip((phi - leaf.phi0) / (leaf.phi1 - leaf.phi0), 0.0, 1.0))
+    t = mi.Point2f(dr.clip((z - leaf.z0) * (1.0 / leaf.dz), 0.0, 1.0),
+                   dr.clip((phi - leaf.phi0) * (1.0 / leaf.dphi), 0.0, 1.0))
     return leaf, t, dr.select(prob > 0, prob, 0.0), state
 
 
@@ -393,6 +393,6 @@ def leaf_density(leaf_kind: str, leaf: Cell, z, phi, corners: LeafCorners | None
     """Density of :func:`sample_leaf` at (z, phi) w.r.t. the leaf's unit square."""
     if leaf_kind != "bilinear":
         return mi.Float(1.0)
-    t_z = dr.clip((z - leaf.z0) / (leaf.z1 - leaf.z0), 0.0, 1.0)
-    t_phi = dr.clip((phi - leaf.phi0) / (leaf.phi1 - leaf.phi0), 0.0, 1.0)
+    t_z = dr.clip((z - leaf.z0) * (1.0 / leaf.dz), 0.0, 1.0)
+    t_phi = dr.clip((phi - leaf.phi0) * (1.0 / leaf.dphi), 0.0, 1.0)
     return mi.warp.square_to_bilinear_pdf(*_bilinear_corners(corners, leaf), mi.Point2f(t_phi, t_z))

@@ -65,17 +65,23 @@ class ProxyLobe(NamedTuple):
         quarter_z = 0.5 / 2**cell.level
         lam = dr.minimum(dr.maximum(self.exponent, 0.0), MAX_SHARPNESS)
         glossy = self.glossy_weight * (1.0 + lam) * (1.0 / (4.0 * math.pi))
+        # 1 + lambda (1 - r.w) / 2 = (1 + lambda / 2) - (lambda / 2) r.w: one fma per child.
         half_lam = 0.5 * lam
+        one_plus_half_lam = 1.0 + half_lam
         diffuse = self.diffuse_weight * (1.0 / math.pi)
         n, r = self.normal, self.mirror
         cos_l, sin_l, cos_r, sin_r = centres
+        # A direction is (sin_theta cos_phi, sin_theta sin_phi, z): its dot product with
+        # n is sin_theta (n.x cos_phi + n.y sin_phi) + n.z z. The bracket depends on the
+        # column only, n.z z on the row only: one fma per child instead of five operations.
+        columns = [(dr.fma(n.x, c, n.y * s_), dr.fma(r.x, c, r.y * s_)) for c, s_ in ((cos_l, sin_l), (cos_r, sin_r))]
         values = []
         for z in (cell.zm - quarter_z, cell.zm + quarter_z):
             sin_theta = dr.safe_sqrt(dr.fma(-z, z, 1.0))
-            for cos_phi, sin_phi in ((cos_l, sin_l), (cos_r, sin_r)):
-                x, y = sin_theta * cos_phi, sin_theta * sin_phi
-                cos_n = dr.fma(n.x, x, dr.fma(n.y, y, n.z * z))
-                cos_m = dr.fma(r.x, x, dr.fma(r.y, y, r.z * z))
-                falloff = dr.rcp(dr.square(dr.fma(half_lam, 1.0 - cos_m, 1.0)))
-                values.append(dr.fma(diffuse, dr.maximum(cos_n, 0.0), glossy * falloff))
+            n_z, r_z = n.z * z, r.z * z
+            for n_column, r_column in columns:
+                cos_n = dr.fma(sin_theta, n_column, n_z)
+                cos_m = dr.fma(sin_theta, r_column, r_z)
+                falloff = dr.square(dr.fma(-half_lam, cos_m, one_plus_half_lam))
+                values.append(dr.fma(diffuse, dr.maximum(cos_n, 0.0), glossy / falloff))
         return tuple(values)
