@@ -64,14 +64,19 @@ def main() -> None:
     for name in integrators:
         variance = float(np.stack(images[name]).var(axis=0, ddof=1).mean())
         rows.append({"integrator": json.loads(name), "pixel_variance": variance,
-                     "time_s": float(np.median(times[name]))})
+                     "time_s": float(np.median(times[name])), "pass_times_s": times[name]})
     base = rows[0]
-    print(f"{'integrator':72s} {'var':>7s} {'time':>7s} {'eff':>7s}   (relative to the first)")
+    print(f"{'integrator':72s} {'var':>7s} {'time':>7s} {'eff':>7s} {'time p10-p90':>13s}   (relative to the first)")
     for name, row in zip(integrators, rows):
         row["variance_ratio"] = row["pixel_variance"] / base["pixel_variance"]
         row["time_ratio"] = row["time_s"] / base["time_s"]
         row["efficiency_ratio"] = 1.0 / (row["variance_ratio"] * row["time_ratio"])
-        print(f"{name:72s} {row['variance_ratio']:7.3f} {row['time_ratio']:7.3f} {row['efficiency_ratio']:7.3f}")
+        # The spread of the time ratio: pass k against the first integrator's pass k,
+        # timed next to it (the machine's load drifts between passes, not within a pair).
+        paired = np.array(row["pass_times_s"]) / np.array(base["pass_times_s"])
+        row["paired_time_ratio_p10"], row["paired_time_ratio_p90"] = (float(q) for q in np.quantile(paired, [0.1, 0.9]))
+        spread = f"{row['paired_time_ratio_p10']:.3f}-{row['paired_time_ratio_p90']:.3f}"
+        print(f"{name:72s} {row['variance_ratio']:7.3f} {row['time_ratio']:7.3f} {row['efficiency_ratio']:7.3f} {spread:>13s}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"scene": args.scene, "envmap": args.envmap, "res": args.res, "spp": args.spp,

@@ -1,0 +1,145 @@
+"""Kernel time of the product sample and pdf walk: the working tree against a git revision.
+
+Where a change to the product warp moves less than the noise between two runs
+of ``scripts/bench_cost_breakdown.py`` (kernel times there vary by 10 % from run
+to run on a shared machine), run both versions in one process, interleaved:
+``warp/product.py``, ``warp/hierarchy.py`` and ``warp/proxy_lobe.py`` of the
+revision ``--base`` are loaded beside the working tree's (``git show``, into a
+temporary package; the rest of the package is the working tree's), and each
+repeat launches both versions' kernels in alternating order on the same lanes.
+
+The lanes are those of ``bench_cost_breakdown.py``: the camera's first hits of
+the scene whose material runs the product (``strategy`` ``product``), at most
+``--lanes``. Each kernel computes the lane's lobe as a pass does (from the
+surface interaction, not loaded from memory: 64 coefficients per lane read from
+memory would make the walks look memory-bound) and then the product sample of a
+uniform point, or the pdf walk of a uniform direction.
+
+    python scripts/ab_product_kernel.py [--base HEAD] [SCENE.xml] [--envmap MAP] [--res 480] \\
+        [--spp 16] [--repeats 15] [--json OUT.json]
+
+Prints, per kernel, the median execution time of each version (ms per 2^20
+lanes), their operation counts and the ratio working tree / base.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import pathlib
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+
+import mitsuba_shsampling  # noqa: F401  (points Dr.Jit at a usable libLLVM first)
+import drjit as dr
+import mitsuba as mi
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import bench_cost_breakdown as breakdown  # noqa: E402
+
+#: The modules of the product walk loaded from the base revision.
+BASE_MODULES = ("product", "hierarchy", "proxy_lobe")
+BASE_PACKAGE = "base_product_warp"
+
+
+def load_base(revision: str, directory: pathlib.Path):
+    """The base revision's ``warp/product.py`` as a module, importing that revision's
+    hierarchy and proxy (relative imports kept inside the copy) and the working
+    tree's everything else."""
+    root = pathlib.Path(__file__).resolve().parent.parent
+    package = directory / BASE_PACKAGE
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    for name in BASE_MODULES:
+        source = subprocess.run(["git", "show", f"{revision}:mitsuba_shsampling/warp/{name}.py"], cwd=root,
+                                check=True, capture_output=True, text=True).stdout
+        # Inside the copy: the package's top level is mitsuba_shsampling, and sibling
+        # modules outside BASE_MODULES are the working tree's.
+        source = source.replace("from ..", "from mitsuba_shsampling.")
+        source = re.sub(r"^from \.(\w+) import",
+                        lambda m: f"from .{m.group(1)} import" if m.group(1) in BASE_MODULES
+                        else f"from mitsuba_shsampling.warp.{m.group(1)} import", source, flags=re.M)
+        (package / f"{name}.py").write_text(source)
+    sys.path.insert(0, str(directory))
+    return importlib.import_module(f"{BASE_PACKAGE}.product"), importlib.import_module(f"{BASE_PACKAGE}.proxy_lobe")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scene", nargs="?", default=None, help="scene file (default: the material studio)")
+    parser.add_argument("--base", default="HEAD", help="git revision to compare the working tree with")
+    parser.add_argument("--envmap", default=None)
+    parser.add_argument("--res", type=int, default=480)
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--lanes", type=int, default=breakdown.LANES_UNIT)
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+
+    mi.set_variant("llvm_ad_rgb")
+    mitsuba_shsampling.register()
+    from mitsuba_shsampling.integrators.environment import ProductEnvironment
+    from mitsuba_shsampling.integrators.options import DirectOptions
+    from mitsuba_shsampling.scenes import default_scene_path, load_scene
+    from mitsuba_shsampling.warp import product as tree_product
+
+    path = args.scene or default_scene_path()
+    scene = load_scene(path, envmap=args.envmap, res=args.res, spp=args.spp)
+    env = ProductEnvironment(scene, DirectOptions(strategy="product"))
+    if env.warp is None:
+        raise SystemExit(f"no material of this scene runs the product strategy ({env.reason or 'no product lobe'})")
+    si = breakdown.product_lanes(scene, env, args.spp, args.lanes)[0]
+    lanes = dr.width(si)
+    rng = mi.PCG32(lanes, 7)
+    u = mi.Point2f(rng.next_float32(), rng.next_float32())
+    d = mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
+    dr.eval(u, d)
+
+    with tempfile.TemporaryDirectory() as directory:
+        base_product, base_proxy = load_base(args.base, pathlib.Path(directory))
+        options = dict(sh_depth=env.warp.sh_depth, defensive_share=env.warp.defensive_share,
+                       proxy_depth=env.warp.proxy_depth)
+        versions = {"base": (base_product.ProductWarp(env.pyramid, **options), base_proxy.ProxyLobe),
+                    "tree": (tree_product.ProductWarp(env.pyramid, **options), None)}
+
+        def kernel(version: str, walk: str):
+            warp, proxy_type = versions[version]
+            lobe, _ = env.lobe(si, breakdown.smooth_lanes(si))
+            proxy = lobe.proxy if proxy_type is None else proxy_type(*lobe.proxy)
+            return warp.sample(lobe.coeffs, u, proxy) if walk == "sample" else warp.pdf(lobe.coeffs, d, proxy)
+
+        walks = ("sample", "pdf")
+        times = {(v, w): [] for v in versions for w in walks}
+        ops = {}
+        for repeat in range(args.repeats):
+            for walk in walks:
+                order = ("base", "tree") if repeat % 2 == 0 else ("tree", "base")
+                for version in order:
+                    cost = breakdown.launch(lambda: kernel(version, walk))
+                    times[(version, walk)].append(cost.execution_ms * breakdown.LANES_UNIT / lanes)
+                    ops[(version, walk)] = cost.ops
+
+    rows = []
+    print(f"{path}: {lanes} product lanes; working tree against {args.base}; median of {args.repeats}, "
+          "ms per 2^20 lanes (lobe computed in the kernel)")
+    print(f"{'kernel':22s} {'base ms':>8s} {'tree ms':>8s} {'base ops':>9s} {'tree ops':>9s} {'tree/base':>9s}")
+    for walk in walks:
+        base, tree = statistics.median(times[("base", walk)]), statistics.median(times[("tree", walk)])
+        label = "lobe + product sample" if walk == "sample" else "lobe + product pdf"
+        print(f"{label:22s} {base:8.2f} {tree:8.2f} {ops[('base', walk)]:9d} {ops[('tree', walk)]:9d} {tree / base:9.3f}")
+        rows.append(dict(kernel=walk, base_ms=base, tree_ms=tree, base_ops=ops[("base", walk)],
+                         tree_ops=ops[("tree", walk)], ratio=tree / base, base_samples=times[("base", walk)],
+                         tree_samples=times[("tree", walk)]))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(dict(scene=path, envmap=args.envmap, base=args.base, lanes=lanes, repeats=args.repeats,
+                           rows=rows), f, indent=2)
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    main()
