@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import glob
 import os
+import warnings
 
 import drjit as dr
 import mitsuba as mi
@@ -22,7 +23,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.grid import cell_index, grid_coordinates, grid_direction  # noqa: E402
 from mitsuba_shsampling.envmap import DEFAULT_MAX_DEPTH, EnvPyramid, auto_depth  # noqa: E402
-from mitsuba_shsampling.envmap.pyramid import SUBTEXEL_LEVELS  # noqa: E402
+from mitsuba_shsampling.envmap.pyramid import DIM_TOTAL, SUBTEXEL_LEVELS  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import (  # noqa: E402
     constant_latlong, envmap_emitter, sun_sky_latlong)
 
@@ -353,6 +354,16 @@ def test_all_zero_map_gives_black_pyramid():
     assert pyramid.is_black and pyramid.total == 0.0
     assert not np.any(pyramid.buffer.numpy())
     assert not EnvPyramid(envmap_emitter(random_latlong(4, 8))).is_black
+
+
+def test_a_map_too_dim_for_float32_cell_integrals_is_black_with_a_warning_and_a_dim_one_is_not():
+    with pytest.warns(RuntimeWarning, match=r"below 1e-20"):
+        too_dim = EnvPyramid(envmap_emitter(random_latlong(16, 32) * np.float32(1e-36)))
+    assert too_dim.is_black and 0.0 < too_dim.total < DIM_TOTAL
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        dim = EnvPyramid(envmap_emitter(random_latlong(16, 32) * np.float32(1e-12)))
+    assert not dim.is_black
 
 
 def test_one_texel_map_is_constant_radiance():

@@ -412,6 +412,47 @@ def test_proxy_levels_sample_returns_the_pdf_that_pdf_evaluates_and_keep_the_def
     assert np.all(pdf >= warp.defensive_share * pdf_env * (1.0 - 1e-4))
 
 
+#: Maps for the mixture's bookkeeping: a 1e5 sun; a window over a black half (cells with no
+#: light at all); the same at 1e-12 (dim, well above EnvPyramid's DIM_TOTAL, below which a
+#: map's float32 cell integrals stop summing to their parents and it is sampled as black).
+ABSOLUTE_WEIGHT_MAPS = {
+    "sun": lambda: sun_sky_latlong(128, 256),
+    "black_half": lambda: window_latlong(64, 128, ambient=0.0),
+    "dim": lambda: window_latlong(64, 128, ambient=0.0) * np.float32(1e-12),
+}
+
+
+@pytest.mark.parametrize("envmap", sorted(ABSOLUTE_WEIGHT_MAPS))
+def test_mixture_weights_are_absolute_children_sum_to_their_parent_at_every_level(envmap):
+    """The contract of walk_sample_absolute / walk_pdf_absolute: the four children's weights
+    are finite, non-negative and sum to the weight of the cell they split, from 1 at the root
+    down to the last product level, for any lobe (ringing clamped at 0, sharp proxies and
+    mirrors, a lobe with no mass, NaN) and any light."""
+    pyramid = EnvPyramid.from_latlong(ABSOLUTE_WEIGHT_MAPS[envmap](), to_world=TILTED, max_depth=CHI2_DEPTH)
+    count = 1 << 12
+    coeffs = per_lane_lobes(8, count, seed=4)
+    coeffs[0] = dr.select(dr.arange(mi.UInt32, count) % 97 == 0, -1.0, coeffs[0])  # no positive mass
+    coeffs[5] = dr.select(dr.arange(mi.UInt32, count) % 89 == 0, dr.nan, coeffs[5])
+    warp = ProductWarp(pyramid, sh_depth=2, proxy_depth=6)
+    provider = warp.weights(coeffs, per_lane_proxies(count, seed=5))
+    rng = np.random.default_rng(6)
+    state, iz, iphi, parent = provider.root(), mi.UInt32(0), mi.UInt32(0), np.float32(1.0)
+    for level in range(provider.walk_depth):
+        cell = Cell(level, iz, iphi)
+        split = provider.children(state, cell)
+        weights = np.stack([w.numpy() for w in split.weights])
+        assert np.all(np.isfinite(weights)) and np.all(weights >= 0), level
+        np.testing.assert_allclose(weights.sum(axis=0), np.broadcast_to(parent, (count,)), rtol=2e-6, atol=1e-30,
+                                   err_msg=f"level {level}")
+        # Follow each lane down to a child of positive weight: the sampled one, else the heaviest.
+        sampled = rng.integers(0, 4, count)
+        index = np.where(weights[sampled, np.arange(count)] > 0, sampled, weights.argmax(axis=0))
+        a, b = mi.Bool(index >= 2), mi.Bool(index % 2 == 1)
+        state = provider.advance(state, split.pending, cell, a, b)
+        parent = weights[index, np.arange(count)]
+        iz, iphi = 2 * iz + dr.select(a, 1, 0), 2 * iphi + dr.select(b, 1, 0)
+
+
 def test_proxy_levels_pdf_integrates_to_one(sun_pyramid):
     warp = ProductWarp(sun_pyramid, sh_depth=3, proxy_depth=7)
     coeffs = opaque(zonal_lobe(phong_attenuation(20.0, 8), (0.5, -0.4, 0.77)))

@@ -50,6 +50,13 @@ LUMINANCE_WEIGHTS = np.array([0.212671, 0.715160, 0.072169])
 _BLOCK_COUNT_MASK = 0x55555555
 #: Texel rows / grid rows processed at once while resampling (bounds the
 #: float64 temporaries to a few times 8 * _CHUNK * max(W, 2^D) bytes).
+DIM_TOTAL = 1e-20
+"""Integral (radiance x sr) below which a map is sampled as black. Its cells' float32
+integrals would reach the denormal range (an average finest cell of a depth-12 pyramid holds
+total / 4^12), where they round to a few bits: the pyramid's levels would no longer sum to
+their parents, which its walks rely on (a 1e-36 map put the product walk's pdf 8 % off).
+The integrators then leave the map to Mitsuba's own sampling, which is exact at any scale."""
+
 _CHUNK = 64
 
 
@@ -244,7 +251,9 @@ class EnvPyramid:
     sees the same finite map; texels with negative luminance stay in the
     emitter but get no product-sampling probability (BSDF sampling under MIS
     still reaches them). :meth:`from_latlong` has no emitter: bad texels count
-    as 0 there. An all-zero map gives ``total == 0`` and ``is_black``.
+    as 0 there. An all-zero map gives ``total == 0`` and ``is_black``; a map whose
+    integral is below :data:`DIM_TOTAL` (mean radiance below ~1e-21) is
+    ``is_black`` too, with a warning.
 
     Raises :class:`EnvmapError` (one line) for a ``to_world`` that is not a
     rotation or a ``scale`` that is negative or not finite.
@@ -370,7 +379,11 @@ class EnvPyramid:
         self.radiant_total: float = radiant_total
         #: Whether the mean radiance was subtracted (MIS compensation).
         self.mis_compensation: bool = compensated
-        self.is_black: bool = self.total == 0.0
+        self.is_black: bool = self.total < DIM_TOTAL
+        if 0.0 < self.total < DIM_TOTAL:
+            warnings.warn(f"EnvPyramid: the map's integral {self.total:.3g} (radiance x sr) is below {DIM_TOTAL:g}, "
+                          "where float32 cell integrals lose their precision: it is sampled as black, and "
+                          "Mitsuba's own envmap sampling takes over", RuntimeWarning, stacklevel=3)
         self.buffer: mi.Float = mi.Float(buffer)
         #: The sampling target (radiance, compensated like the cells) at the finest
         #: cells' corners, (2^D + 1)^2 values: the bilinear density inside a leaf.

@@ -89,7 +89,7 @@ class ProductEnvironment:
             return
         self.pyramid = EnvPyramid(self.emitter, mis_compensation=options.mis_compensation)
         if self.pyramid.is_black:
-            self.reason = "the environment map is black"
+            self.reason = "the environment map is black (or too dim for float32 cell integrals: EnvPyramid.DIM_TOTAL)"
             return
         # The environment strategies are Mitsuba's own envmap sampling (compensated
         # like the pyramid): the strategies of Mitsuba's `direct`, at its cost. A

@@ -149,7 +149,8 @@ class OracleEnvironment:
             self.reason = f"the environment emitter is '{self.emitter.class_name()}', not an 'envmap'"
         else:
             pyramid = EnvPyramid(self.emitter)
-            self.reason = "the environment map is black" if pyramid.is_black else ""
+            self.reason = ("the environment map is black (or too dim for float32 cell integrals: "
+                           "EnvPyramid.DIM_TOTAL)" if pyramid.is_black else "")
             if not pyramid.is_black:
                 self.warp = OracleWarp(pyramid, options.resolution, options.defensive_share)
                 self.needs_emitter_sampling = bool(others)

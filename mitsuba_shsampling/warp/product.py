@@ -164,6 +164,10 @@ class ProductWeights:
 
     Lanes whose lobe has no positive mass where the map is lit (or is not
     finite) use e = 1, i.e. plain environment sampling.
+
+    The children's W sum to the parent's up to float32 rounding because the
+    pyramid's levels do: maps too dim for that are black to the pyramid
+    (:data:`~mitsuba_shsampling.envmap.pyramid.DIM_TOTAL`).
     """
 
     def __init__(self, coeffs: list, pyramid, sh_depth: int, defensive_share: float,
