@@ -316,38 +316,48 @@ class SceneCache:
 
     The state is built from the environment emitter's traversed parameters
     (``data``, ``scale``, ``to_world``) and those of every BSDF. Each
-    :meth:`get` traverses them again (on the host, no kernel) and compares
+    :meth:`get` reads them again (on the host, no kernel) and compares
     their Dr.Jit variable indices: ``params.update()`` installs new variables,
     and a write into a parameter in place gets a new variable too, because the
     cache holds a second reference to the old one (copy on write). Holding
     those references also keeps the old indices from being recycled.
+
+    The objects are traversed once per scene: a ``SceneParameters`` reads each
+    value from the object when asked, so reading it again sees every update:
+    0.16 ms a pass on the material studio and 0.02 ms on a sphere, against 1.1
+    and 0.25 ms for traversing again, which each pass paid before.
     """
 
     def __init__(self, build: Callable[[mi.Scene], object]):
         self._build = build
         self._scene, self._env = None, None
         self._key, self._held = None, []
+        self._traversed: list[mi.SceneParameters] = []
 
     def get(self, scene: mi.Scene, stale_ok: bool = False):
         """The state ``build`` made for ``scene``, built again when its inputs changed;
-        with ``stale_ok`` only for another scene (the inputs are not even traversed)."""
-        if self._scene is not scene or (not stale_ok and self._identity(self._inputs(scene)) != self._key):
+        with ``stale_ok`` only for another scene (the inputs are not even read)."""
+        if self._scene is not scene or (not stale_ok and self._identity(self._inputs()) != self._key):
             self._env = self._build(scene)
             self._scene = scene
+            self._traversed = self._traverse(scene)
             # Read after the build, which may have sanitised the envmap's data.
-            inputs = self._inputs(scene)
+            inputs = self._inputs()
             self._key = self._identity(inputs)
             self._held = [type(value)(value) for value in inputs if dr.detail.collect_indices(value)]
         return self._env
 
     @staticmethod
-    def _inputs(scene: mi.Scene) -> list:
-        """Traversed parameter values of the environment emitter and of each distinct BSDF."""
+    def _traverse(scene: mi.Scene) -> list:
+        """The traversed parameters of the environment emitter and of each distinct BSDF."""
         objects = [scene.environment()] + [m.bsdf for m in scene_materials(scene)]
+        return [mi.traverse(obj) for obj in objects if obj is not None]
+
+    def _inputs(self) -> list:
+        """The current values of the traversed parameters."""
         values = []
-        for obj in objects:
-            if obj is not None:
-                values += [value for _, value in readable_parameters(mi.traverse(obj))]
+        for params in self._traversed:
+            values += [value for _, value in readable_parameters(params)]
         return values
 
     @staticmethod
