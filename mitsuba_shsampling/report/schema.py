@@ -46,7 +46,8 @@ class CompareSettings:
     """Settings of one ``compare`` run (the CLI options)."""
 
     out: str = "report"
-    res: int = 192
+    res: int = 256
+    """Image width; the default job's (``cli.COMPARE_RES``, see its comment there)."""
     spp: int = 8
     passes: int = 32
     ref_spp: int = 1024
