@@ -70,28 +70,13 @@ def load_base(revision: str, directory: pathlib.Path):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("scene", nargs="?", default=None, help="scene file (default: the material studio)")
     parser.add_argument("--base", default="HEAD", help="git revision to compare the working tree with")
-    parser.add_argument("--envmap", default=None)
-    parser.add_argument("--res", type=int, default=480)
-    parser.add_argument("--spp", type=int, default=16)
-    parser.add_argument("--lanes", type=int, default=breakdown.LANES_UNIT)
-    parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("--json", default=None)
+    breakdown.add_scene_arguments(parser, repeats=15)
     args = parser.parse_args()
-
-    mi.set_variant("llvm_ad_rgb")
-    mitsuba_shsampling.register()
-    from mitsuba_shsampling.integrators.environment import ProductEnvironment
-    from mitsuba_shsampling.integrators.options import DirectOptions
-    from mitsuba_shsampling.scenes import default_scene_path, load_scene
+    path, scene = breakdown.load_scene_of(args)
     from mitsuba_shsampling.warp import product as tree_product
 
-    path = args.scene or default_scene_path()
-    scene = load_scene(path, envmap=args.envmap, res=args.res, spp=args.spp)
-    env = ProductEnvironment(scene, DirectOptions(strategy="product"))
-    if env.warp is None:
-        raise SystemExit(f"no material of this scene runs the product strategy ({env.reason or 'no product lobe'})")
+    env = breakdown.forced_product_environment(scene)
     si = breakdown.product_lanes(scene, env, args.spp, args.lanes)[0]
     lanes = dr.width(si)
     rng = mi.PCG32(lanes, 7)

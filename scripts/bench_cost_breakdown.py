@@ -391,33 +391,49 @@ def print_table(rows: list[dict], labels: dict[str, str]) -> None:
               f"{row['ops_over_direct_pass']:>7.3f} {row['time_over_direct_pass']:>6.3f}")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_scene_arguments(parser: argparse.ArgumentParser, repeats: int) -> None:
+    """The scene and timing options of this script, shared with ``ab_product_kernel.py``."""
     parser.add_argument("scene", nargs="?", default=None, help="scene file (default: the material studio)")
     parser.add_argument("--envmap", default=None)
     parser.add_argument("--res", type=int, default=480)
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--lanes", type=int, default=LANES_UNIT, help="product lanes per stage kernel, at most")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per stage and pass (median)")
+    parser.add_argument("--repeats", type=int, default=repeats, help="timed runs per kernel (median)")
     parser.add_argument("--json", default=None)
-    args = parser.parse_args()
 
+
+def load_scene_of(args) -> tuple[str, mi.Scene]:
+    """(path, scene) of the options of :func:`add_scene_arguments`, in ``llvm_ad_rgb``."""
     mi.set_variant("llvm_ad_rgb")
     mitsuba_shsampling.register()
-    from mitsuba_shsampling.integrators.environment import ProductEnvironment
-    from mitsuba_shsampling.integrators.options import DirectOptions
     from mitsuba_shsampling.scenes import default_scene_path, load_scene
 
     path = args.scene or default_scene_path()
-    scene = load_scene(path, envmap=args.envmap, res=args.res, spp=args.spp)
+    return path, load_scene(path, envmap=args.envmap, res=args.res, spp=args.spp)
+
+
+def forced_product_environment(scene: mi.Scene):
+    """The per-scene state of ``sh_direct`` with the product strategy forced, as the pass
+    builds it; exits with the reason when no material of the scene can run the product."""
+    from mitsuba_shsampling.integrators.environment import ProductEnvironment
+    from mitsuba_shsampling.integrators.options import DirectOptions
+
+    env = ProductEnvironment(scene, DirectOptions(strategy="product"))
+    if env.warp is None:
+        raise SystemExit(f"no material of this scene runs the product strategy ({env.reason or 'no product lobe'})")
+    return env
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_arguments(parser, repeats=5)
+    args = parser.parse_args()
+    path, scene = load_scene_of(args)
     # The passes first: the stages' per-scene state below holds an envmap copy
     # that would add to every pass kernel (see measure_passes).
     pass_costs = measure_passes(scene, args.spp, args.repeats)
     gc.collect()
-    # The per-scene state of sh_direct with the product strategy forced, as the pass builds it.
-    env = ProductEnvironment(scene, DirectOptions(strategy="product"))
-    if env.warp is None:
-        raise SystemExit(f"no material of this scene runs the product strategy ({env.reason or 'no product lobe'})")
+    env = forced_product_environment(scene)
     si, camera_samples, product_in_film = product_lanes(scene, env, args.spp, args.lanes)
     lanes = dr.width(si)
     print(f"{path}: {args.res} px, {args.spp} spp: {camera_samples} camera samples, "

@@ -175,26 +175,37 @@ def walk_sample(provider: QuadWeights, depth: int, u: mi.Point2f):
     return Cell(depth, iz, iphi), mi.Point2f(uz, uphi), prob, valid & (prob > 0), state
 
 
-def walk_pdf(provider: QuadWeights, depth: int, z, phi):
-    """Descend ``depth`` levels towards the point (z, phi).
+def _walk_to_point(provider: QuadWeights, depth: int, z, phi, branch: Callable):
+    """The pdf walks' descent towards (z, phi): per level the provider's split, the
+    child (a, b) holding the point, and ``prob = branch(prob, weights, a, b)``.
 
-    Returns (leaf cell, position of the point in the leaf in [0,1]^2,
-    probability of the leaf, provider state at the leaf).
-    """
+    Returns (leaf cell, prob, provider state at the leaf)."""
     iz, iphi = mi.UInt32(0), mi.UInt32(0)
     prob = mi.Float(1.0)
     state = provider.root()
     for level in range(depth):
         cell = Cell(level, iz, iphi)
         split = provider.children(state, cell)
-        w = [_clamped(wi) for wi in split.weights]
         a, b = z >= cell.zm, phi >= cell.phim
-        prob *= (_split_probability(w[0] + w[1], w[2] + w[3], a)
-                 * _split_probability(dr.select(a, w[2], w[0]), dr.select(a, w[3], w[1]), b))
+        prob = branch(prob, split.weights, a, b)
         state = provider.advance(state, split.pending, cell, a, b)
         iz = 2 * iz + dr.select(a, 1, 0)
         iphi = 2 * iphi + dr.select(b, 1, 0)
-    leaf = Cell(depth, iz, iphi)
+    return Cell(depth, iz, iphi), prob, state
+
+
+def walk_pdf(provider: QuadWeights, depth: int, z, phi):
+    """Descend ``depth`` levels towards the point (z, phi).
+
+    Returns (leaf cell, position of the point in the leaf in [0,1]^2,
+    probability of the leaf, provider state at the leaf).
+    """
+    def branch(prob, weights, a, b):
+        w = [_clamped(wi) for wi in weights]
+        return prob * (_split_probability(w[0] + w[1], w[2] + w[3], a)
+                       * _split_probability(dr.select(a, w[2], w[0]), dr.select(a, w[3], w[1]), b))
+
+    leaf, prob, state = _walk_to_point(provider, depth, z, phi, branch)
     t = mi.Point2f(dr.clip((z - leaf.z0) * (1.0 / leaf.dz), 0.0, 1.0),
                    dr.clip((phi - leaf.phi0) * (1.0 / leaf.dphi), 0.0, 1.0))
     return leaf, t, dr.select(prob > 0, prob, 0.0), state
@@ -253,18 +264,7 @@ def walk_pdf_absolute(provider: QuadWeights, depth: int, z, phi):
 
     Returns (leaf cell, probability of the leaf, provider state at the leaf).
     """
-    iz, iphi = mi.UInt32(0), mi.UInt32(0)
-    prob = mi.Float(1.0)
-    state = provider.root()
-    for level in range(depth):
-        cell = Cell(level, iz, iphi)
-        split = provider.children(state, cell)
-        a, b = z >= cell.zm, phi >= cell.phim
-        prob = select_child(split.weights, a, b)
-        state = provider.advance(state, split.pending, cell, a, b)
-        iz = 2 * iz + dr.select(a, 1, 0)
-        iphi = 2 * iphi + dr.select(b, 1, 0)
-    return Cell(depth, iz, iphi), prob, state
+    return _walk_to_point(provider, depth, z, phi, lambda prob, weights, a, b: select_child(weights, a, b))
 
 
 # --------------------------------------------------------------- binary tree
