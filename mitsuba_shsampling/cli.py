@@ -49,9 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
                              help="render every method at equal samples and equal time, write a report")
     # 256 px wide: at 192 the material studio's film variance under its sun-and-sky map
     # was 83 % pixel-footprint variance that no light sampler changes (the chooser's
-    # shared variance), the chooser rightly kept the lean kernel, and the default job
-    # measured antialiasing, a tie by construction. At 256 that share is 68 % and the
-    # product pays (predicted 1.20x); the job stays within a few minutes on 2 cores.
+    # shared variance) and the verdict's equal-time interval spanned 0.76-1.06; at 256
+    # that share is 68 % and the interval 0.97-1.04 (README, "The default job"). The
+    # job stays near two minutes on 2 cores.
     compare.set_defaults(res=COMPARE_RES)
     compare.add_argument("scenes", nargs="*", metavar="SCENE.xml",
                          help="Mitsuba 3 scene files, used as written (their camera is rebuilt at --res "
