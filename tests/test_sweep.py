@@ -266,6 +266,13 @@ def test_a_failed_cells_error_keeps_the_exception_type_its_whole_message_and_the
     assert "in load_scene" in error and "in load_material" in error
 
 
+def chosen(strategy_choice: dict | None):
+    """What ``strategy`` ``auto`` chose (the kernel and each material's strategy), or None."""
+    if not strategy_choice:
+        return None
+    return strategy_choice["lean"], tuple((m["name"], m["strategy"]) for m in strategy_choice["materials"])
+
+
 def test_aggregate_numbers_are_those_of_compare_on_the_same_cell(first_sweep, tmp_path):
     root, _, out, _ = first_sweep
     row = next(r for r in json.load(open(os.path.join(out, "aggregate.json")))["cells"]
@@ -287,9 +294,17 @@ def test_aggregate_numbers_are_those_of_compare_on_the_same_cell(first_sweep, tm
         out=str(tmp_path / "compare"), samplers=("independent",), methods=tuple(METHODS),
         envmap=scenes.SUNSKY_MAP, cache_dir=str(tmp_path / "cache"), progress=False, **TINY))
     methods = direct.scenes[0].runs[0].methods
+    compared = []
     for m in METHODS:
         assert methods[m].equal_spp.spp == stored[m]["equal_spp"]["spp"]
+        if chosen(methods[m].strategy_choice) != chosen(stored[m].get("strategy_choice")):
+            # strategy auto chooses from its pilots' pass times, measured on the machine as it
+            # is: at 16 px the lean and the product kernel can swap between two runs, and the
+            # seeded renders are then of two estimators. The identity holds per estimator.
+            continue
         assert methods[m].equal_spp.error.mse == pytest.approx(row["methods"][m]["equal_spp_mse"], rel=1e-5)
+        compared.append(m)
+    assert "direct" in compared  # no choice to make: always compared
     local = ("out", "cache_dir", "progress")
     settings = json.load(open(os.path.join(out, row["report"])))["settings"]
     assert {k: v for k, v in serialise(direct.settings).items() if k not in local} == \
