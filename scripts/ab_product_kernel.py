@@ -74,8 +74,6 @@ def main() -> None:
     breakdown.add_scene_arguments(parser, repeats=15)
     args = parser.parse_args()
     path, scene = breakdown.load_scene_of(args)
-    from mitsuba_shsampling.warp import product as tree_product
-
     env = breakdown.forced_product_environment(scene)
     si = breakdown.product_lanes(scene, env, args.spp, args.lanes)[0]
     lanes = dr.width(si)
@@ -89,7 +87,7 @@ def main() -> None:
         options = dict(sh_depth=env.warp.sh_depth, defensive_share=env.warp.defensive_share,
                        proxy_depth=env.warp.proxy_depth)
         versions = {"base": (base_product.ProductWarp(env.pyramid, **options), base_proxy.ProxyLobe),
-                    "tree": (tree_product.ProductWarp(env.pyramid, **options), None)}
+                    "tree": (env.warp, None)}
 
         def kernel(version: str, walk: str):
             warp, proxy_type = versions[version]

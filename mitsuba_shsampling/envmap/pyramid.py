@@ -50,6 +50,8 @@ LUMINANCE_WEIGHTS = np.array([0.212671, 0.715160, 0.072169])
 _BLOCK_COUNT_MASK = 0x55555555
 #: Texel rows / grid rows processed at once while resampling (bounds the
 #: float64 temporaries to a few times 8 * _CHUNK * max(W, 2^D) bytes).
+_CHUNK = 64
+
 DIM_TOTAL = 1e-20
 """Integral (radiance x sr) below which a map is sampled as black. Its cells' float32
 integrals would reach the denormal range (an average finest cell of a depth-12 pyramid holds
@@ -57,7 +59,8 @@ total / 4^12), where they round to a few bits: the pyramid's levels would no lon
 their parents, which its walks rely on (a 1e-36 map put the product walk's pdf 8 % off).
 The integrators then leave the map to Mitsuba's own sampling, which is exact at any scale."""
 
-_CHUNK = 64
+BLACK_MAP_REASON = "the environment map is black (or too dim for float32 cell integrals: EnvPyramid.DIM_TOTAL)"
+"""Why an integrator leaves a map whose pyramid ``is_black`` to Mitsuba's own sampling."""
 
 
 SUBTEXEL_LEVELS = 2

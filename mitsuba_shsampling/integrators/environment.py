@@ -27,7 +27,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..envmap.emitter import EmitterDirections, compensated_copy
-from ..envmap.pyramid import EnvPyramid
+from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid
 from ..lobes import SceneLobes
 from ..scene_materials import registry_id, scene_materials
 from ..traversal import readable_parameters
@@ -89,7 +89,7 @@ class ProductEnvironment:
             return
         self.pyramid = EnvPyramid(self.emitter, mis_compensation=options.mis_compensation)
         if self.pyramid.is_black:
-            self.reason = "the environment map is black (or too dim for float32 cell integrals: EnvPyramid.DIM_TOTAL)"
+            self.reason = BLACK_MAP_REASON
             return
         # The environment strategies are Mitsuba's own envmap sampling (compensated
         # like the pyramid): the strategies of Mitsuba's `direct`, at its cost. A

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..envmap.pyramid import EnvPyramid
+from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid
 from ..lobes.fit import luminance
 from ..warp.oracle import OracleWarp
 from .environment import SceneCache
@@ -149,8 +149,7 @@ class OracleEnvironment:
             self.reason = f"the environment emitter is '{self.emitter.class_name()}', not an 'envmap'"
         else:
             pyramid = EnvPyramid(self.emitter)
-            self.reason = ("the environment map is black (or too dim for float32 cell integrals: "
-                           "EnvPyramid.DIM_TOTAL)" if pyramid.is_black else "")
+            self.reason = BLACK_MAP_REASON if pyramid.is_black else ""
             if not pyramid.is_black:
                 self.warp = OracleWarp(pyramid, options.resolution, options.defensive_share)
                 self.needs_emitter_sampling = bool(others)

@@ -108,6 +108,22 @@ def _clamped(w):
     return dr.select(w > 0, w, 0.0)
 
 
+def _split_absolute(w_lo, w_hi, u):
+    """One binary split driven by the sample ``u`` in [0, 1): (upper half chosen,
+    its weight, ``u`` rescaled into it). One division, for the rescaled sample;
+    the probability is not divided out (:func:`walk_sample_absolute` needs none,
+    :func:`_split_sample` divides once more)."""
+    # In units of weight: u * total is the sample's position in [0, total).
+    # The next level waits for the choice, which then needs no division, and
+    # the rescaled sample (position - lower bound) / chosen weight is
+    # (u - p_lo) / p_chosen with one division instead of two. Rounding can
+    # put it a hair outside [0, 1): the clip keeps it in.
+    position = u * (w_lo + w_hi)
+    upper = position >= w_lo
+    chosen = dr.select(upper, w_hi, w_lo)
+    return upper, chosen, dr.clip((position - dr.select(upper, w_lo, 0.0)) / chosen, 0.0, LAST_BELOW_ONE)
+
+
 def _split_sample(w_lo, w_hi, u):
     """One binary split of clamped weights driven by the sample ``u`` in [0, 1).
 
@@ -117,21 +133,10 @@ def _split_sample(w_lo, w_hi, u):
     split: the walks test the product once at the end instead of the total at
     every level.
     """
+    upper, chosen, u = _split_absolute(w_lo, w_hi, u)
     total = w_lo + w_hi
-    # In units of weight: u * total is the sample's position in [0, total).
-    # The next level waits for the choice, which then needs no division, and
-    # the rescaled sample (position - lower bound) / chosen weight is
-    # (u - p_lo) / p_chosen with one division instead of two. Rounding can
-    # put it a hair outside [0, 1): the clip keeps it in.
-    position = u * total
-    upper = position >= w_lo
-    chosen = dr.select(upper, w_hi, w_lo)
-    u = dr.clip((position - dr.select(upper, w_lo, 0.0)) / chosen, 0.0, LAST_BELOW_ONE)
     # The chosen weight over the total, not 1 - p_lo for the upper half: that
-    # keeps a small upper half's digits (1 - p_lo is off by up to 3e-8
-    # absolute), and the product warp's chi-square test on a map with a 1e5
-    # sun rejected 1 - p_lo more often (p-values 0.0009-0.012 over 8 seeds,
-    # 0.0006-0.054 with this).
+    # keeps a small upper half's digits (1 - p_lo is off by up to 3e-8 absolute).
     return upper, chosen / total, u, total < dr.inf
 
 
@@ -211,16 +216,6 @@ def walk_pdf(provider: QuadWeights, depth: int, z, phi):
     return leaf, t, dr.select(prob > 0, prob, 0.0), state
 
 
-def _split_absolute(w_lo, w_hi, u):
-    """One binary split of absolute weights (:func:`walk_sample_absolute`): (upper
-    half chosen, its weight, ``u`` rescaled into it). One division, for the
-    rescaled sample; the probability is not divided out."""
-    position = u * (w_lo + w_hi)
-    upper = position >= w_lo
-    chosen = dr.select(upper, w_hi, w_lo)
-    return upper, chosen, dr.clip((position - dr.select(upper, w_lo, 0.0)) / chosen, 0.0, LAST_BELOW_ONE)
-
-
 def _quad_split(w, uz, uphi):
     """Choose one of four absolute weights (order (0,0), (0,1), (1,0), (1,1)):
     the z half by the row sums, then the phi half within the row. Returns
@@ -239,7 +234,7 @@ def walk_sample_absolute(provider: QuadWeights, depth: int, u: mi.Point2f):
     The branch probabilities then telescope: the leaf's probability is its own
     weight, up to the rounding of the sums (~1e-7 relative per level). So no
     weight is clamped and no probability divided out at each split: one
-    division per split, for the rescaled sample, against three and the clamps
+    division per split, for the rescaled sample, against two and the clamps
     of the generic walk. :func:`walk_pdf_absolute` returns the same weight.
     """
     iz, iphi = mi.UInt32(0), mi.UInt32(0)
