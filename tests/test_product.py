@@ -28,7 +28,7 @@ from mitsuba_shsampling.sh.basis import sh_eval  # noqa: E402
 from mitsuba_shsampling.fidelity import product_fidelity  # noqa: E402
 from mitsuba_shsampling.envmap.emitter import EmitterDirections, compensated_copy  # noqa: E402
 from mitsuba_shsampling.warp.product import ProductWarp, default_sh_depth  # noqa: E402
-from mitsuba_shsampling.warp.proxy_lobe import ProxyLobe  # noqa: E402
+from mitsuba_shsampling.warp.proxy_lobe import ProxyLobe, moment_proxy  # noqa: E402
 
 from conftest import ENVMAPS_DIR
 from leaf_chi2 import LeafAlignedChiSquareTest
@@ -492,3 +492,60 @@ def test_closed_form_proxy_peaks_at_the_mirror_and_stays_finite_for_sharp_lobes(
     child = 2 * (iz & 1) + (iphi & 1)
     parent = (iz >> 1) * (cells >> 1) + (iphi >> 1)
     assert values[child, parent] == values.max()
+
+
+# ------------------------- the proxy read off the coefficients (moment_proxy)
+
+@pytest.mark.parametrize("s", [0.5, 4.0, 20.0, 300.0])
+def test_moment_proxy_gives_back_a_phong_lobes_exponent_and_axis_at_any_band_count(s):
+    """Bands 0 and 1 do not depend on the band limit: even at 3 bands a
+    rotated Phong lobe's expansion names its own exponent and axis."""
+    axis = np.array([0.5, -0.4, 0.77]) / np.linalg.norm([0.5, -0.4, 0.77])
+    for n_bands in (3, 10):
+        proxy = moment_proxy(opaque(zonal_lobe(phong_attenuation(s, n_bands), axis.tolist())))
+        assert proxy.exponent.numpy()[0] == pytest.approx(s, rel=2e-3)
+        assert np.allclose(proxy.mirror.numpy().ravel(), axis, atol=1e-5)
+        assert proxy.diffuse_weight.numpy()[0] == 0.0
+
+
+def test_moment_proxy_of_a_function_without_a_bright_side_is_flat():
+    """A clamped cosine has mean cosine 2/3 (Phong exponent 1); a constant and a
+    function even in w (band 2 only) have none: exponent 0, the walk below the SH
+    levels then follows the environment."""
+    up = moment_proxy(opaque(zonal_lobe(cosine_attenuation(3), (0.0, 0.0, 1.0))))
+    assert up.exponent.numpy()[0] == pytest.approx(1.0, rel=1e-4)
+    constant = [1.0] + [0.0] * 8
+    even = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.7, 0.0, 0.0]
+    for coeffs in (constant, even):
+        assert moment_proxy(opaque(coeffs)).exponent.numpy()[0] == 0.0
+
+
+@pytest.mark.parametrize("coeffs", [[0.0] * 9, [-1.0, 0.0, 0.5, 0.0] + [0.0] * 5,
+                                    [math.nan] * 9, [1.0, math.inf, 0.0, 0.0] + [0.0] * 5])
+def test_moment_proxy_of_bad_coefficients_is_finite(coeffs):
+    """No mass, negative mass, NaN, an infinite first moment: a flat proxy with
+    a unit axis, never a NaN that would reach the walk's weights."""
+    proxy = moment_proxy(opaque(coeffs))
+    exponent, mirror = proxy.exponent.numpy()[0], proxy.mirror.numpy().ravel()
+    assert exponent == 0.0
+    assert np.all(np.isfinite(mirror)) and np.linalg.norm(mirror) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_the_default_warp_reads_its_proxy_off_the_coefficients(sun_pyramid):
+    """Without a proxy the default warp runs SH levels on top and the moment proxy
+    below: the same densities as the same warp handed moment_proxy explicitly."""
+    warp = ProductWarp(sun_pyramid)
+    assert warp.sh_depth_for(10) == 2 and warp.proxy_depth == 6
+    coeffs = per_lane_lobes(10, 1 << 12, seed=9)
+    u = uniform_samples(1 << 12)
+    d, pdf = warp.sample(coeffs, u)
+    d_explicit, pdf_explicit = warp.sample(coeffs, u, moment_proxy(coeffs))
+    assert np.array_equal(d.numpy(), d_explicit.numpy()) and np.array_equal(pdf.numpy(), pdf_explicit.numpy())
+
+
+@pytest.mark.parametrize("lobe", ["phong20_rotated", "phong100_rotated"])
+def test_chi2_without_proxy_levels(real_pyramid, lobe):
+    """``proxy_depth=None``: SH levels (from the band count), then the map alone."""
+    attenuation, axis = CHI2_LOBES[lobe]
+    test = run_chi2(ProductWarp(real_pyramid, sh_depth=None, proxy_depth=None), zonal_lobe(attenuation, axis))
+    assert test.run(0.01), test.messages

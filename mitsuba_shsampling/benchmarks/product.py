@@ -43,7 +43,7 @@ from ..envmap import EnvPyramid
 from ..fidelity import product_fidelity
 from ..scenes import builtin_envmaps
 from ..sh.basis import sh_eval
-from ..warp.product import ProductWarp, default_sh_depth
+from ..warp.product import DEFAULT_PROXY_DEPTH, SH_DEPTH_WITH_PROXY, ProductWarp
 from . import set_default_variant, write_json
 
 #: Lobe axes (grid frame) of the fidelity figures: zenith, horizon, nadir-ish, oblique.
@@ -99,6 +99,14 @@ class Settings:
     lanes: int
     repeats: int
     fidelity_lobes: int
+    proxy_depth: int = DEFAULT_PROXY_DEPTH
+    """Proxy levels down to this depth (0: none, and the SH depth from the band count)."""
+
+    def warp(self, pyramid, sh_depth: int | None) -> ProductWarp:
+        """The warp measured at ``sh_depth`` (None: the default for these proxy levels)."""
+        if sh_depth is None:
+            sh_depth = SH_DEPTH_WITH_PROXY if self.proxy_depth else None
+        return ProductWarp(pyramid, sh_depth=sh_depth, proxy_depth=self.proxy_depth or None)
 
 
 def load_maps(files: list[str] | None) -> list[tuple[str, mi.Emitter]]:
@@ -141,7 +149,7 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
         fidelity_lobes = [[float(c.numpy()[0]) for c in phong_lobes(n_bands, mi.Vector3f(*axis), s)]
                           for axis in FIDELITY_AXES[:settings.fidelity_lobes]]
         for sh_depth in (settings.sh_depths or [None]):
-            warp = ProductWarp(pyramid, sh_depth=sh_depth)
+            warp = settings.warp(pyramid, sh_depth)
 
             def sample_run():
                 d, pdf = warp.sample(coeffs, fresh_u())
@@ -162,12 +170,12 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
             _, mitsuba_after = timed(mitsuba_run, settings.repeats)
             sample_ops, mitsuba_ops = kernel_ops(sample_run), kernel_ops(mitsuba_run)
             mitsuba_s = 0.5 * (mitsuba_before + mitsuba_after)
-            fidelity_warp = ProductWarp(fidelity_pyramid, sh_depth=sh_depth)
+            fidelity_warp = settings.warp(fidelity_pyramid, sh_depth)
             figures = [product_fidelity(fidelity_warp, lobe) for lobe in fidelity_lobes]
             mean = {key: float(np.mean([f[key] for f in figures])) for key in figures[0]}
             rows.append(dict(
                 envmap=name, bands=n_bands, coefficients=n_bands * n_bands, phong_exponent=s,
-                sh_depth=default_sh_depth(n_bands) if sh_depth is None else sh_depth,
+                sh_depth=warp.sh_depth_for(n_bands), proxy_depth=settings.proxy_depth,
                 depth=warp.depth, lanes=lanes,
                 msamples_per_s=lanes / sample_s / 1e6,
                 pdf_msamples_per_s=lanes / pdf_s / 1e6,
@@ -190,12 +198,12 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
     return rows
 
 
-HEADER = (f"{'envmap':<28} {'bands':>5} {'D':>2} {'shd':>3} {'M/s':>6} {'pdf M/s':>7} {'Mi M/s':>6} "
+HEADER = (f"{'envmap':<28} {'bands':>5} {'D':>2} {'shd':>3} {'pxd':>3} {'M/s':>6} {'pdf M/s':>7} {'Mi M/s':>6} "
           f"{'ratio':>5} {'ops':>6} {'Mi ops':>6} {'1st s':>5} {'fidelity':>8} {'rel.var':>7} {'missed':>7} {'wasted':>7} {'tail':>6} {'B/pt':>5}")
 
 
 def format_row(r: dict) -> str:
-    return (f"{r['envmap']:<28} {r['bands']:>5} {r['depth']:>2} {r['sh_depth']:>3} {r['msamples_per_s']:>6.2f} "
+    return (f"{r['envmap']:<28} {r['bands']:>5} {r['depth']:>2} {r['sh_depth']:>3} {r['proxy_depth']:>3} {r['msamples_per_s']:>6.2f} "
             f"{r['pdf_msamples_per_s']:>7.2f} {r['mitsuba_envmap_msamples_per_s']:>6.2f} "
             f"{r['ratio_to_mitsuba']:>5.2f} {r['sample_kernel_ops']:>6} {r['mitsuba_kernel_ops']:>6} {r['first_call_s']:>5.1f} {r['product_fidelity']:>8.4f} "
             f"{r['relative_variance']:>7.3f} {r['missed_mass']:>7.4f} {r['wasted_mass']:>7.4f} {r['tail_mass']:>6.3f} "
@@ -204,13 +212,14 @@ def format_row(r: dict) -> str:
 
 def run(quick: bool = False, envmaps: list[str] | None = None, bands: list[int] | None = None,
         sh_depths: list[int] | None = None, lanes: int | None = None,
-        repeats: int | None = None) -> list[dict]:
+        repeats: int | None = None, proxy_depth: int = DEFAULT_PROXY_DEPTH) -> list[dict]:
     """One record per (map, band count, sh_depth)."""
     settings = Settings(bands=tuple(bands or ([3, 10] if quick else [3, 5, 10, 15, 20])),
                         sh_depths=tuple(sh_depths) if sh_depths else None,
                         lanes=lanes or (1 << 18 if quick else 1 << 20),
                         repeats=repeats or (3 if quick else 5),
-                        fidelity_lobes=1 if quick else len(FIDELITY_AXES))
+                        fidelity_lobes=1 if quick else len(FIDELITY_AXES),
+                        proxy_depth=proxy_depth)
     print(HEADER, flush=True)
     rows = []
     for name, emitter in load_maps(envmaps):
@@ -226,11 +235,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--envmap", nargs="+", help="maps to use instead of the built-in ones")
     parser.add_argument("--bands", type=int, nargs="+", help="band counts (default 3 5 10 15 20)")
     parser.add_argument("--sh-depths", type=int, nargs="+", help="sh_depth values to sweep")
+    parser.add_argument("--proxy-depth", type=int, default=DEFAULT_PROXY_DEPTH,
+                        help="proxy levels down to this depth (0: none, sh_depth from the band count)")
     parser.add_argument("--lanes", type=int, help="lanes per call (default 2^20, quick 2^18)")
     parser.add_argument("--repeats", type=int, help="warm runs per timing (median)")
     args = parser.parse_args(argv)
     set_default_variant()
-    write_json(args.json, run(args.quick, args.envmap, args.bands, args.sh_depths, args.lanes, args.repeats))
+    write_json(args.json, run(args.quick, args.envmap, args.bands, args.sh_depths, args.lanes, args.repeats,
+                              args.proxy_depth))
 
 
 if __name__ == "__main__":

@@ -36,7 +36,7 @@ from ..lobes.scene_lobes import DEFAULT_MAX_BANDS, DIFFUSE_BANDS, MAX_BANDS, che
 from ..warp.hierarchy import MAX_DEPTH
 from ..warp.oracle import (DEFAULT_RESOLUTION as DEFAULT_ORACLE_RESOLUTION,
                            MAX_RESOLUTION as MAX_ORACLE_RESOLUTION, check_resolution)
-from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, check_defensive_share
+from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, SH_DEPTH_WITH_PROXY, check_defensive_share
 from .strategy import AUTO, STRATEGY_NAMES, Strategy
 
 #: Band counts the lobe proxies support (:func:`~..lobes.scene_lobes.check_max_bands`).
@@ -48,11 +48,7 @@ MIN_BANDS = DIFFUSE_BANDS
 # (scripts/optimise_prb.py; docs/MEASUREMENTS.md, "sh_prb's state rebuilds").
 DEFAULT_REBUILD_INTERVAL = 64
 
-# sh_depth 2 with the closed-form proxy down to level 6 (DEFAULT_PROXY_DEPTH):
-# at about the kernel operations of sh_depth 3 without the proxy, less
-# per-pixel variance on every sphere and map measured (docs/MEASUREMENTS.md,
-# "Band count, SH depth and proxy levels").
-DEFAULT_SH_DEPTH = 2
+DEFAULT_SH_DEPTH = SH_DEPTH_WITH_PROXY
 
 
 class OptionError(ValueError):

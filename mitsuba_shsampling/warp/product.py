@@ -55,7 +55,7 @@ from ..sh.basis import as_coefficients, bands_of
 from .hierarchy import (Split, check_depth, descend_pyramid_pdf, descend_pyramid_sample, leaf_density,
                         sample_leaf, select_child, walk_pdf_absolute, walk_sample_absolute)
 from .hsw import SHCellState, SHCellWeights
-from .proxy_lobe import ProxyLobe
+from .proxy_lobe import ProxyLobe, moment_proxy
 
 
 #: Fraction of a leaf's width kept clear of its edges when placing a sample
@@ -86,9 +86,14 @@ def default_sh_depth(n_bands: int) -> int:
 
 
 DEFAULT_PROXY_DEPTH = 6
-"""Deepest level whose children the integrators weight by the closed-form
-proxy (:mod:`.proxy_lobe`); chosen with ``sh_depth`` 2 (docs/MEASUREMENTS.md,
-"Band count, SH depth and proxy levels")."""
+"""Deepest level whose children are weighted by the closed-form proxy
+(:mod:`.proxy_lobe`); chosen with ``sh_depth`` :data:`SH_DEPTH_WITH_PROXY`
+(docs/MEASUREMENTS.md, "Band count, SH depth and proxy levels")."""
+
+SH_DEPTH_WITH_PROXY = 2
+"""SH levels above closed-form proxy levels: at about the kernel operations of
+``sh_depth`` 3 without the proxy, less per-pixel variance on every sphere and
+map measured (docs/MEASUREMENTS.md, "Band count, SH depth and proxy levels")."""
 
 DEFAULT_DEFENSIVE_SHARE = 0.1
 """Share of the environment's own distribution in the product strategy (see
@@ -265,9 +270,9 @@ class ProductWarp:
         The environment's luminance pyramid; the leaves are its finest cells,
         inside which directions are uniform.
 
-    Parameter ``sh_depth`` (int or None):
-        Levels with analytic SH cell integrals (default: from the band count,
-        :func:`default_sh_depth`), at least 1; deeper levels use the
+    Parameter ``sh_depth`` (int or None, default :data:`SH_DEPTH_WITH_PROXY`):
+        Levels with analytic SH cell integrals, at least 1 (None: from the
+        band count, :func:`default_sh_depth`); deeper levels use the
         closed-form proxy down to ``proxy_depth``, then the environment alone.
         Capped at the pyramid's depth.
 
@@ -275,21 +280,26 @@ class ProductWarp:
         Weight e of the environment's own distribution in the sampled
         mixture (1 - e) product + e environment (:class:`ProductWeights`).
 
-    Parameter ``proxy_depth`` (int or None):
-        Levels down to which the closed-form proxy, when ``sample`` / ``pdf``
-        get one, weights the children below the SH levels (None: none).
-        Capped at the pyramid's depth.
+    Parameter ``proxy_depth`` (int or None, default :data:`DEFAULT_PROXY_DEPTH`):
+        Levels down to which a closed-form proxy of the lobe weights the
+        children below the SH levels (None: none, the environment alone
+        below them). Capped at the pyramid's depth.
 
     ``sample(coeffs, u, proxy=None)`` returns (world direction, solid-angle
     pdf); ``pdf(coeffs, d, proxy=None)`` evaluates the density for world
     directions. ``coeffs`` are n^2 per-lane SH coefficients in the grid frame,
-    ``proxy`` the same lobe in closed form (:class:`~.proxy_lobe.ProxyLobe`).
+    ``proxy`` the same lobe in closed form (:class:`~.proxy_lobe.ProxyLobe`;
+    the integrators fit one per BSDF). Without one, the proxy levels use
+    :func:`~.proxy_lobe.moment_proxy`, a lobe read off the coefficients'
+    first two bands, so the SH cell integrals (about 0.8k kernel operations
+    a level at 10 bands) are paid on the top levels only.
     The pdf is positive wherever the pyramid is (every lit direction), for any
     coefficients; only a black map gives pdf 0.
     """
 
-    def __init__(self, pyramid, sh_depth: int | None = None,
-                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE, proxy_depth: int | None = None):
+    def __init__(self, pyramid, sh_depth: int | None = SH_DEPTH_WITH_PROXY,
+                 defensive_share: float = DEFAULT_DEFENSIVE_SHARE,
+                 proxy_depth: int | None = DEFAULT_PROXY_DEPTH):
         self.pyramid = pyramid
         self.depth = check_depth(pyramid.depth)
         #: Levels with analytic SH weights (None: chosen from the band count).
@@ -301,9 +311,14 @@ class ProductWarp:
         """The weight provider that :meth:`sample` and :meth:`pdf` walk (the cost
         benchmark, ``scripts/bench_cost_breakdown.py``, walks its levels apart)."""
         coeffs = as_coefficients(coeffs)
-        sh_depth = default_sh_depth(bands_of(coeffs)) if self.sh_depth is None else self.sh_depth
-        return ProductWeights(coeffs, self.pyramid, min(sh_depth, self.depth), self.defensive_share,
-                              proxy, self.proxy_depth)
+        sh_depth = min(self.sh_depth_for(bands_of(coeffs)), self.depth)
+        if proxy is None and self.proxy_depth is not None and self.proxy_depth > sh_depth:
+            proxy = moment_proxy(coeffs)
+        return ProductWeights(coeffs, self.pyramid, sh_depth, self.defensive_share, proxy, self.proxy_depth)
+
+    def sh_depth_for(self, n_bands: int) -> int:
+        """The SH levels the walk runs for lobes of ``n_bands`` bands."""
+        return default_sh_depth(n_bands) if self.sh_depth is None else self.sh_depth
 
     def sample(self, coeffs, u: mi.Point2f, proxy: ProxyLobe | None = None):
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""

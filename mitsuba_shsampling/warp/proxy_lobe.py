@@ -85,3 +85,37 @@ class ProxyLobe(NamedTuple):
                 falloff = dr.square(dr.fma(-half_lam, cos_m, one_plus_half_lam))
                 values.append(dr.fma(diffuse, dr.maximum(cos_n, 0.0), glossy / falloff))
         return tuple(values)
+
+
+def moment_proxy(coeffs: list) -> ProxyLobe:
+    """A one-lobe proxy read off an SH expansion's first two bands, for callers
+    of :class:`~.product.ProductWarp` that hold only coefficients.
+
+    The bands 0 and 1 of a function are exact whatever the band limit: they
+    are its integral and its first moment, m = integral f(w) w dw. So the
+    direction of m and the mean cosine mu = |m| / integral (the lobe's, not its
+    band-limited ringing's) come at the price of four coefficients. For the
+    real basis of :mod:`mitsuba_shsampling.sh.basis` (y_1^-1 = -K y,
+    y_1^0 = K z, y_1^1 = -K x, K = sqrt(3 / 4 pi)),
+
+        m = (4 pi / 3) K (-f_1^1, -f_1^-1, f_1^0),   mu = |(f_1^-1, f_1^0, f_1^1)| / (sqrt(3) f_0^0).
+
+    The exponent is that of the Phong lobe with this mean cosine,
+    (s + 1) / (s + 2) = mu, i.e. s = (2 mu - 1) / (1 - mu): a Phong lobe's
+    SH expansion gives back its own s, and a function no brighter on one
+    side than the other (mu <= 1/2) a uniform proxy (s clamped to 0), below
+    which the walk follows the environment. Only the glossy part is used.
+    The proxy only steers the walk: the pdf stays exact whatever it is.
+    """
+    f00, f1m, f10, f1p = coeffs[0], coeffs[1], coeffs[2], coeffs[3]
+    axis = mi.Vector3f(-f1p, -f1m, f10)
+    length = dr.norm(axis)
+    mu = length / (math.sqrt(3.0) * f00)
+    # mu >= 1 (a delta, or ringing that outweighs the mean) is the sharpest lobe;
+    # mu <= 1/2, no positive mean or a first moment without a direction (zero, NaN,
+    # infinite) is none: exponent 0.
+    exponent = dr.select(mu < 1.0, dr.fma(2.0, mu, -1.0) / (1.0 - mu), MAX_SHARPNESS)
+    has_axis = dr.isfinite(length) & (length > 0.0)
+    exponent = dr.select(has_axis & (mu > 0.5), exponent, 0.0)
+    mirror = dr.select(has_axis, axis / length, mi.Vector3f(0.0, 0.0, 1.0))
+    return ProxyLobe(mirror, mi.Float(0.0), mirror, mi.Float(1.0), exponent)
