@@ -44,10 +44,11 @@ WARPS = {
 FULL_SWEEP = [(w, leaf, n, d) for n in (3, 5, 10, 15, 20)
               for w, leaf, depths in (("quadtree", "uniform", (4, 6, 8)),
                                       ("strip", "uniform", (8, 10, 12)),
-                                      ("strip", "bilinear", (6, 8, 10)))
+                                      ("strip", "bilinear", (6, 8, 10)),
+                                      ("strip", "linear", (6, 9, 12)))
               for d in depths]
-QUICK_SWEEP = [("strip", "uniform", 5, 6), ("strip", "uniform", 5, 12), ("strip", "uniform", 20, 12),
-               ("quadtree", "uniform", 5, 6)]
+QUICK_SWEEP = [("strip", "uniform", 5, 6), ("strip", "uniform", 5, 12), ("strip", "linear", 5, 9),
+               ("strip", "uniform", 20, 12), ("strip", "linear", 20, 9), ("quadtree", "uniform", 5, 6)]
 
 
 def _random_inputs(lanes: int, seed: int):

@@ -237,6 +237,18 @@ def strip_antiderivative_series(zonal: list) -> list:
     return series
 
 
+def zonal_marginal_series(zonal: list) -> list:
+    """The density in z of a function integrated over full circles, as a series.
+
+    g(z) = dG/dz = 2 pi sum_l f_l^0 K_l^0 P_l(z) (:func:`strip_antiderivative_series`
+    without the antiderivative), a polynomial of degree ``order``, with
+    coefficients in the monic Legendre basis for :func:`monic_legendre_series`.
+    """
+    series = [f * (2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi)) * _monic_legendre_leading(l))
+              for l, f in enumerate(zonal)]
+    return series + [0.0] * (2 - len(series))  # monic_legendre_series wants two terms
+
+
 def monic_legendre_series(series: list, z):
     """sum_k series[k] Pm_k(z) over the monic Legendre polynomials.
 

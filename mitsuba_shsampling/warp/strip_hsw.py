@@ -40,8 +40,10 @@ import mitsuba as mi
 
 from ..grid import TWO_PI, Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of, legendre_contraction, sh_index
-from ..sh.integrals import contract_phi, monic_legendre_series, phi_integrals_centred, strip_antiderivative_series
-from .hierarchy import Split, check_depth, check_leaf, leaf_density, sample_leaf, walk_pdf_1d, walk_sample_1d
+from ..sh.integrals import (contract_phi, monic_legendre_series, phi_integrals_centred, strip_antiderivative_series,
+                            zonal_marginal_series)
+from .hierarchy import (LEAF_KINDS, Split, check_depth, leaf_density, linear_leaf_density, sample_leaf,
+                        sample_linear_leaf, walk_pdf_1d, walk_sample_1d)
 from .hsw import sh_leaf_corners
 
 DEFAULT_DEPTH = 12
@@ -130,6 +132,22 @@ class AzimuthWeights:
             self.row[self.order - m] = scale * b[-m]
             scale = scale * sin_theta
 
+    def values_at_ends(self, leaf: ArcState, depth: int):
+        """f on the circle at the two ends of the depth-``depth`` arc whose
+        centre ``leaf`` holds (angle addition with the constant half-width,
+        then the Chebyshev recurrence per end: O(n), no sine or cosine)."""
+        ends = child_phi_centres(leaf.cos_c, leaf.sin_c, depth - 1)
+        values = []
+        for cos_e, sin_e in ((ends[0], ends[1]), (ends[2], ends[3])):
+            total = self.row[self.order] + 0 * cos_e
+            c_prev, c_cur, s_prev, s_cur = 1.0, cos_e, 0.0, sin_e
+            for m in range(1, self.order + 1):
+                total = dr.fma(self.row[self.order + m], c_cur, dr.fma(self.row[self.order - m], s_cur, total))
+                c_prev, c_cur = c_cur, dr.fma(2.0 * cos_e, c_cur, -c_prev)
+                s_prev, s_cur = s_cur, dr.fma(2.0 * cos_e, s_cur, -s_prev)
+            values.append(total)
+        return values
+
     def root(self) -> ArcState:
         # Centre of [0, 2 pi) is pi; its full-circle integral keeps only m = 0.
         return ArcState(mi.Float(-1.0), mi.Float(0.0), TWO_PI * self.row[self.order])
@@ -147,6 +165,9 @@ class AzimuthWeights:
                         dr.select(upper, pending.right, pending.left))
 
 
+STRIP_LEAF_KINDS = LEAF_KINDS + ("linear",)
+
+
 class SHStripWarp:
     """Hierarchical sample warping of max(f, 0), z strips first, then phi.
 
@@ -156,28 +177,48 @@ class SHStripWarp:
         float32 samples support depth <= 12 (one bit per level is spent).
 
     Parameter ``leaf`` (str, default ``"uniform"``):
-        ``"uniform"`` or ``"bilinear"`` placement inside the leaf
-        (see :mod:`.hsw`).
+        Placement inside the leaf: ``"uniform"``, ``"bilinear"`` (see
+        :mod:`.hsw`; four SH evaluations, O(n^2) each), or ``"linear"``:
+        z by the linear interpolant of the strip's density in z at its two
+        ends (the zonal series, O(n) each), phi by that of f on the strip's
+        middle circle at the leaf's two ends (the phi phase's row, O(n)
+        each). Its error falls with the square of the leaf size where the
+        uniform leaf's falls with the size, so fewer levels reach the same
+        pdf error (docs/MEASUREMENTS.md, "SH warps").
 
     Same interface and conventions as :class:`.hsw.SHWarp`.
     """
 
     def __init__(self, depth: int = DEFAULT_DEPTH, leaf: str = "uniform"):
         self.depth = check_depth(depth)
-        self.leaf = check_leaf(leaf)
+        if leaf not in STRIP_LEAF_KINDS:
+            raise ValueError(f"leaf must be one of {STRIP_LEAF_KINDS}, got {leaf!r}")
+        self.leaf = leaf
 
     def _strip_middle(self, iz):
         """z of the middle circle of strip ``iz`` (that of any leaf in that row)."""
         return Cell(self.depth, iz, 0).zm
 
+    def _linear_ends(self, coeffs, leaf: Cell, azimuth: AzimuthWeights, arc: ArcState):
+        """End values of the ``"linear"`` leaf: the density in z at z0, z1, and f on
+        the middle circle at phi0, phi1."""
+        order = bands_of(coeffs) - 1
+        marginal = zonal_marginal_series([coeffs[sh_index(l, 0)] for l in range(order + 1)])
+        z_ends = [monic_legendre_series(marginal, z) for z in (leaf.z0, leaf.z1)]
+        return z_ends, azimuth.values_at_ends(arc, self.depth)
+
     def sample(self, coeffs, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a direction; returns (direction, pdf)."""
         coeffs = as_coefficients(coeffs)
         iz, t_z, p_z, valid_z, _ = walk_sample_1d(ZonalStripWeights(coeffs), self.depth, u.x, -1.0, 1.0)
-        iphi, t_phi, p_phi, valid_phi, _ = walk_sample_1d(
-            AzimuthWeights(coeffs, self._strip_middle(iz)), self.depth, u.y, 0.0, TWO_PI)
+        azimuth = AzimuthWeights(coeffs, self._strip_middle(iz))
+        iphi, t_phi, p_phi, valid_phi, arc = walk_sample_1d(azimuth, self.depth, u.y, 0.0, TWO_PI)
         leaf = Cell(self.depth, iz, iphi)
-        z, phi, density = sample_leaf(self.leaf, leaf, mi.Point2f(t_z, t_phi), sh_leaf_corners(coeffs))
+        t = mi.Point2f(t_z, t_phi)
+        if self.leaf == "linear":
+            z, phi, density = sample_linear_leaf(leaf, t, *self._linear_ends(coeffs, leaf, azimuth, arc))
+        else:
+            z, phi, density = sample_leaf(self.leaf, leaf, t, sh_leaf_corners(coeffs))
         valid = valid_z & valid_phi
         d = dr.select(valid, grid_direction(z, phi), mi.Vector3f(0.0, 0.0, 1.0))
         return d, dr.select(valid, p_z * p_phi * density / leaf.area, 0.0)
@@ -187,6 +228,11 @@ class SHStripWarp:
         coeffs = as_coefficients(coeffs)
         z, phi = grid_coordinates(d)
         iz, p_z, _ = walk_pdf_1d(ZonalStripWeights(coeffs), self.depth, z, -1.0, 1.0)
-        iphi, p_phi, _ = walk_pdf_1d(AzimuthWeights(coeffs, self._strip_middle(iz)), self.depth, phi, 0.0, TWO_PI)
+        azimuth = AzimuthWeights(coeffs, self._strip_middle(iz))
+        iphi, p_phi, arc = walk_pdf_1d(azimuth, self.depth, phi, 0.0, TWO_PI)
         leaf = Cell(self.depth, iz, iphi)
-        return p_z * p_phi * leaf_density(self.leaf, leaf, z, phi, sh_leaf_corners(coeffs)) / leaf.area
+        if self.leaf == "linear":
+            density = linear_leaf_density(leaf, z, phi, *self._linear_ends(coeffs, leaf, azimuth, arc))
+        else:
+            density = leaf_density(self.leaf, leaf, z, phi, sh_leaf_corners(coeffs))
+        return p_z * p_phi * density / leaf.area
