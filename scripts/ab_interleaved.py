@@ -1,7 +1,8 @@
 """A/B of integrator settings on one scene, timed interleaved, in one process.
 
 Pass k of every integrator runs before pass k + 1 of any (same seeds for all),
-so a slow spell of the machine falls on all of them alike. Prints, against the
+so a slow spell of the machine falls on all of them alike; round k starts with
+integrator k (mod their number), so no integrator always follows the same one. Prints, against the
 first integrator: the per-pixel luminance variance across passes (the
 expected squared error of one pass, tails included), the median pass time and
 the efficiency 1 / (variance x time); ``--json`` writes the same.
@@ -36,6 +37,8 @@ def main() -> None:
     parser.add_argument("--passes", type=int, default=16)
     parser.add_argument("--json", default=None)
     parser.add_argument("--no-freeze", action="store_true", help="time traced passes (tracing included)")
+    parser.add_argument("--fixed-order", action="store_true",
+                        help="run every round in the listed order (default: round k starts with integrator k)")
     args = parser.parse_args()
 
     mi.set_variant("llvm_ad_rgb")
@@ -53,8 +56,13 @@ def main() -> None:
         np.array(frozen(10_001))
     times = {name: [] for name in integrators}
     images = {name: [] for name in integrators}
+    names = list(integrators)
     for k in range(args.passes):
-        for name in integrators:
+        # Round k starts with integrator k (mod their number) unless --fixed-order: a pass
+        # may leave the caches or the clock in a state that favours or slows whichever
+        # integrator comes next, and a fixed order would give that to one of them every time.
+        shift = 0 if args.fixed_order else k % len(names)
+        for name in names[shift:] + names[:shift]:
             start = time.perf_counter()
             image = np.array(passes[name](k))
             times[name].append(time.perf_counter() - start)
