@@ -13,10 +13,11 @@ Node weights (the four children of the current cell):
 * levels ``< sh_depth``: analytic SH cell integral (clamped at 0) times the
   environment cell integral (both exact; their product estimates the integral
   of the product, exactly only at the leaves);
-* levels ``sh_depth .. proxy_depth - 1`` (when a per-lane
-  :class:`~.proxy_lobe.ProxyLobe` is given): the same proxy in closed form, at
-  its fitted (not band-limited) sharpness, evaluated at the children's
-  centres, times the environment cell integrals;
+* levels ``sh_depth .. proxy_depth - 1``: the lobe in closed form (the
+  per-lane :class:`~.proxy_lobe.ProxyLobe` the integrators fit to the BSDF, at
+  its fitted, not band-limited, sharpness; without one the lobe read off the
+  coefficients' first two bands, :func:`~.proxy_lobe.moment_proxy`), evaluated
+  at the children's centres, times the environment cell integrals;
 * deeper levels: the environment cell integrals alone, i.e. the lobe is taken
   as constant inside the chosen cell. The SH work is paid for the top levels
   only while the environment's full resolution is still reached by one gather
