@@ -73,11 +73,15 @@ def test_the_interleaved_ab_script_reports_variance_time_and_efficiency_against_
     scene = os.path.join(REPO, "mitsuba_shsampling", "scenes", "sphere_diffuse.xml")
     envmap = os.path.join(REPO, "tests", "data", "envmaps", "immenstadter_horn_1k.hdr")
     proc = subprocess.run([sys.executable, os.path.join(REPO, "scripts", "ab_interleaved.py"), scene,
-                           "--envmap", envmap, "--res", "48", "--spp", "2", "--passes", "4", "--json", str(out),
+                           "--envmap", envmap, "--res", "48", "--spp", "2", "--passes", "4", "--instances", "2",
+                           "--json", str(out),
                            '{"type": "direct"}', '{"type": "direct", "bsdf_samples": 2, "emitter_samples": 0}'],
                           env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    first, second = json.loads(out.read_text())["rows"]
+    report = json.loads(out.read_text())
+    first, second = report["rows"]
+    assert report["instances"] == 2 and len(first["pass_times_s"]) == 4
+    assert first["instance_time_spread"] >= 1.0 and second["instance_time_spread"] >= 1.0
     assert first["variance_ratio"] == first["time_ratio"] == first["efficiency_ratio"] == 1.0
     assert second["efficiency_ratio"] == pytest.approx(1.0 / (second["variance_ratio"] * second["time_ratio"]))
     # BSDF sampling alone rarely finds the map's sun: far noisier than 1 + 1 MIS.
