@@ -67,9 +67,10 @@ def check_depth(depth) -> int:
     return depth
 
 
-def check_leaf(leaf) -> str:
-    if leaf not in LEAF_KINDS:
-        raise ValueError(f"leaf must be one of {LEAF_KINDS}, got {leaf!r}")
+def check_leaf(leaf, kinds: tuple = LEAF_KINDS) -> str:
+    """Validate a warp's ``leaf`` parameter against the placements it offers."""
+    if leaf not in kinds:
+        raise ValueError(f"leaf must be one of {kinds}, got {leaf!r}")
     return leaf
 
 

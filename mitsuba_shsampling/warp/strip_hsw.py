@@ -42,7 +42,7 @@ from ..grid import TWO_PI, Cell, child_phi_centres, grid_coordinates, grid_direc
 from ..sh.basis import as_coefficients, bands_of, legendre_contraction, sh_index
 from ..sh.integrals import (contract_phi, monic_legendre_series, phi_integrals_centred, strip_antiderivative_series,
                             zonal_marginal_series)
-from .hierarchy import (LEAF_KINDS, Split, check_depth, leaf_density, linear_leaf_density, sample_leaf,
+from .hierarchy import (LEAF_KINDS, Split, check_depth, check_leaf, leaf_density, linear_leaf_density, sample_leaf,
                         sample_linear_leaf, walk_pdf_1d, walk_sample_1d)
 from .hsw import sh_leaf_corners
 
@@ -79,7 +79,14 @@ class ZonalStripWeights:
 
     def __init__(self, coeffs: list):
         order = bands_of(coeffs) - 1
-        self.series = strip_antiderivative_series([coeffs[sh_index(l, 0)] for l in range(order + 1)])
+        zonal = [coeffs[sh_index(l, 0)] for l in range(order + 1)]
+        self.series = strip_antiderivative_series(zonal)
+        # Traced only where density() is called (the "linear" leaf): unused, it is dead code.
+        self.marginal = zonal_marginal_series(zonal)
+
+    def density(self, z) -> mi.Float:
+        """G'(z): the function integrated over the full circle at height ``z`` (O(n))."""
+        return monic_legendre_series(self.marginal, z)
 
     def root(self) -> StripState:
         g_lo = monic_legendre_series(self.series, -1.0)
@@ -166,6 +173,7 @@ class AzimuthWeights:
 
 
 STRIP_LEAF_KINDS = LEAF_KINDS + ("linear",)
+"""Leaf placements of :class:`SHStripWarp`: the shared ones and its own separable linear one."""
 
 
 class SHStripWarp:
@@ -191,32 +199,28 @@ class SHStripWarp:
 
     def __init__(self, depth: int = DEFAULT_DEPTH, leaf: str = "uniform"):
         self.depth = check_depth(depth)
-        if leaf not in STRIP_LEAF_KINDS:
-            raise ValueError(f"leaf must be one of {STRIP_LEAF_KINDS}, got {leaf!r}")
-        self.leaf = leaf
+        self.leaf = check_leaf(leaf, STRIP_LEAF_KINDS)
 
     def _strip_middle(self, iz):
         """z of the middle circle of strip ``iz`` (that of any leaf in that row)."""
         return Cell(self.depth, iz, 0).zm
 
-    def _linear_ends(self, coeffs, leaf: Cell, azimuth: AzimuthWeights, arc: ArcState):
+    def _leaf_end_values(self, strips: ZonalStripWeights, leaf: Cell, azimuth: AzimuthWeights, arc: ArcState):
         """End values of the ``"linear"`` leaf: the density in z at z0, z1, and f on
         the middle circle at phi0, phi1."""
-        order = bands_of(coeffs) - 1
-        marginal = zonal_marginal_series([coeffs[sh_index(l, 0)] for l in range(order + 1)])
-        z_ends = [monic_legendre_series(marginal, z) for z in (leaf.z0, leaf.z1)]
-        return z_ends, azimuth.values_at_ends(arc, self.depth)
+        return [strips.density(z) for z in (leaf.z0, leaf.z1)], azimuth.values_at_ends(arc, self.depth)
 
     def sample(self, coeffs, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a direction; returns (direction, pdf)."""
         coeffs = as_coefficients(coeffs)
-        iz, t_z, p_z, valid_z, _ = walk_sample_1d(ZonalStripWeights(coeffs), self.depth, u.x, -1.0, 1.0)
+        strips = ZonalStripWeights(coeffs)
+        iz, t_z, p_z, valid_z, _ = walk_sample_1d(strips, self.depth, u.x, -1.0, 1.0)
         azimuth = AzimuthWeights(coeffs, self._strip_middle(iz))
         iphi, t_phi, p_phi, valid_phi, arc = walk_sample_1d(azimuth, self.depth, u.y, 0.0, TWO_PI)
         leaf = Cell(self.depth, iz, iphi)
         t = mi.Point2f(t_z, t_phi)
         if self.leaf == "linear":
-            z, phi, density = sample_linear_leaf(leaf, t, *self._linear_ends(coeffs, leaf, azimuth, arc))
+            z, phi, density = sample_linear_leaf(leaf, t, *self._leaf_end_values(strips, leaf, azimuth, arc))
         else:
             z, phi, density = sample_leaf(self.leaf, leaf, t, sh_leaf_corners(coeffs))
         valid = valid_z & valid_phi
@@ -227,12 +231,13 @@ class SHStripWarp:
         """Density (per steradian) with which :meth:`sample` produces ``d``."""
         coeffs = as_coefficients(coeffs)
         z, phi = grid_coordinates(d)
-        iz, p_z, _ = walk_pdf_1d(ZonalStripWeights(coeffs), self.depth, z, -1.0, 1.0)
+        strips = ZonalStripWeights(coeffs)
+        iz, p_z, _ = walk_pdf_1d(strips, self.depth, z, -1.0, 1.0)
         azimuth = AzimuthWeights(coeffs, self._strip_middle(iz))
         iphi, p_phi, arc = walk_pdf_1d(azimuth, self.depth, phi, 0.0, TWO_PI)
         leaf = Cell(self.depth, iz, iphi)
         if self.leaf == "linear":
-            density = linear_leaf_density(leaf, z, phi, *self._linear_ends(coeffs, leaf, azimuth, arc))
+            density = linear_leaf_density(leaf, z, phi, *self._leaf_end_values(strips, leaf, azimuth, arc))
         else:
             density = leaf_density(self.leaf, leaf, z, phi, sh_leaf_corners(coeffs))
         return p_z * p_phi * density / leaf.area
