@@ -92,7 +92,10 @@ def main() -> None:
         def kernel(version: str, walk: str):
             warp, proxy_type = versions[version]
             lobe, _ = env.lobe(si, breakdown.smooth_lanes(si))
-            proxy = lobe.proxy if proxy_type is None else proxy_type(*lobe.proxy)
+            # The lanes walk their SH lobe (breakdown.product_lanes): no cosine-table branch,
+            # and a base revision's proxy type takes the fields it has.
+            fields = tuple(lobe.proxy._replace(cosine_only=False))
+            proxy = proxy_type(*fields[:len(proxy_type._fields)]) if proxy_type else lobe.proxy._replace(cosine_only=False)
             return warp.sample(lobe.coeffs, u, proxy) if walk == "sample" else warp.pdf(lobe.coeffs, d, proxy)
 
         walks = ("sample", "pdf")

@@ -140,13 +140,15 @@ def smooth_lanes(si: mi.SurfaceInteraction3f) -> mi.Bool:
 
 def product_lanes(scene: mi.Scene, env, spp: int, max_lanes: int):
     """(first hits of the product lanes, camera samples, product lanes in the film):
-    the camera's first hits whose material runs the product strategy, at most
-    ``max_lanes`` of them, taken evenly over the film."""
+    the camera's first hits whose material runs the product strategy by its SH walk
+    (diffuse lobes, sampled from the cosine tables, are timed apart: the stages
+    ``cosine_table_*``), at most ``max_lanes`` of them, taken evenly over the film."""
     ray, count = camera_rays(scene, spp)
     dr.eval(ray)
     si = scene.ray_intersect(ray)
-    _, use_product = env.lobe(si, smooth_lanes(si))
-    chosen = np.flatnonzero(use_product.numpy())
+    lane_lobe, use_product = env.lobe(si, smooth_lanes(si))
+    walks = use_product & ~mi.Bool(lane_lobe.proxy.cosine_only) if lane_lobe is not None else use_product
+    chosen = np.flatnonzero(walks.numpy())
     found = len(chosen)
     if found == 0:
         raise SystemExit("no camera sample of this scene hits a material that runs the product strategy")
@@ -178,7 +180,7 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
     from mitsuba_shsampling.grid import Cell
     from mitsuba_shsampling.integrators.estimators import environment_ray_target
     from mitsuba_shsampling.warp.hierarchy import descend_pyramid_sample, walk_sample_absolute
-    from mitsuba_shsampling.warp.product import place_in_leaf
+    from mitsuba_shsampling.warp.env_leaves import place_in_leaf
 
     lanes = dr.width(si)
     rng = mi.PCG32(lanes, 7)
@@ -193,7 +195,8 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
 
     lane_lobe, _ = env.lobe(si, smooth_lanes(si))
     evaluated(lobe_arrays(lane_lobe))
-    coeffs, proxy = lane_lobe.coeffs, lane_lobe.proxy
+    # These lanes walk their SH lobe: the stages trace that walk alone (no table branch).
+    coeffs, proxy = lane_lobe.coeffs, lane_lobe.proxy._replace(cosine_only=False)
     weights = warp.weights(coeffs, proxy)
 
     def sh_levels():
@@ -255,6 +258,13 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
         ds, weight = emitter.sample_direction(si, u_env)
         return ds.d, ds.pdf, weight
 
+    # What the same lanes would cost with a diffuse lobe about their normal (its table).
+    table = warp.cosine_table
+    table_stages = [] if table is None else [
+        Stage("cosine_table_sample", "cosine table sample (a diffuse lane)", lambda: table.sample(proxy.normal, u_product)),
+        Stage("cosine_table_pdf", "cosine table pdf", lambda: table.pdf(proxy.normal, d_bsdf)),
+    ]
+
     return [
         Stage("lobe", "lobe lookup + SH rotation", lobe),
         Stage("sh_levels", f"  walk: SH levels 0-{weights.sh_depth - 1}", sh_levels),
@@ -271,6 +281,7 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
         Stage("bsdf_sample", "BSDF sample", bsdf_sample),
         Stage("bsdf_ray", "BSDF-sample ray (ray_intersect)", bsdf_ray),
         Stage("product_code_fused", "lobe + sample + pdf in one kernel", product_code_fused),
+        *table_stages,
         Stage(REFERENCE_STAGE, "Mitsuba envmap sample_direction", mitsuba_envmap_sample),
     ]
 

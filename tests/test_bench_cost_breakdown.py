@@ -10,7 +10,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 STAGES = ("lobe", "sh_levels", "product_levels", "proxy_levels", "pyramid_descent", "leaf_placement",
           "product_sample", "product_pdf", "bsdf_eval_pdf", "shadow_ray", "envmap_eval", "bsdf_sample",
-          "bsdf_ray", "product_code_fused", "mitsuba_envmap_sample")
+          "bsdf_ray", "product_code_fused", "cosine_table_sample", "cosine_table_pdf", "mitsuba_envmap_sample")
 PASSES = ("direct", "sh_direct_environment", "sh_direct_product")
 
 

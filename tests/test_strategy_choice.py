@@ -19,7 +19,7 @@ mi.set_variant("llvm_ad_rgb")
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong, window_latlong  # noqa: E402
 from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.chooser import (LEAN, Pilots, camera_frames, choose_strategies,  # noqa: E402
-                                                    film_variance_factor, frame_variances,
+                                                    cosine_pilot, film_variance_factor, frame_variances,
                                                     minimise_error_at_equal_time)
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
@@ -125,9 +125,24 @@ def test_a_dirac_part_rules_out_the_strategies_without_a_bsdf_sample():
 def test_the_coordinate_descent_pays_for_time_only_where_the_variance_drops_enough():
     variance = {"big_glossy": {E: 10.0, P: 3.0}, "small_diffuse": {E: 1.0, P: 0.97}}
     share = {"big_glossy": 0.5, "small_diffuse": 0.5}
-    choice, error = minimise_error_at_equal_time(variance, 0.0, share, base_time=1.0, extra_time={E: 0.0, P: 0.4})
+    extra_time = {m: {E: 0.0, P: 0.4} for m in variance}
+    choice, error = minimise_error_at_equal_time(variance, 0.0, share, base_time=1.0, extra_time=extra_time)
     assert choice == {"big_glossy": P, "small_diffuse": E}
     assert error == pytest.approx((3.0 + 1.0) * (1.0 + 0.2))
+
+
+def test_a_lobe_sampled_from_the_cheap_cosine_tables_takes_the_product_where_the_sh_walk_would_not_pay():
+    """The same variances; the diffuse material's product costs what its tables cost, the
+    glossy one's what its SH walk costs (each per unit of film share)."""
+    variance = {"glossy": {E: 10.0, P: 3.0}, "diffuse": {E: 1.0, P: 0.8}}
+    share = {"glossy": 0.2, "diffuse": 0.8}
+    one_cost = {m: {E: 0.0, P: 0.4} for m in variance}
+    choice, _ = minimise_error_at_equal_time(variance, 0.0, share, base_time=1.0, extra_time=one_cost)
+    assert choice == {"glossy": P, "diffuse": E}
+    per_kind = {"glossy": {E: 0.0, P: 0.4}, "diffuse": {E: 0.0, P: 0.05}}
+    choice, error = minimise_error_at_equal_time(variance, 0.0, share, base_time=1.0, extra_time=per_kind)
+    assert choice == {"glossy": P, "diffuse": P}
+    assert error == pytest.approx((3.0 + 0.8) * (1.0 + 0.2 * 0.4 + 0.8 * 0.05))
 
 
 def test_materials_where_nothing_pays_leave_the_product_out_of_the_kernel():
@@ -329,6 +344,9 @@ def test_auto_chooses_before_the_first_pass_and_reports_every_material():
     names = {m.name for m in choice.materials}
     assert {"ggx", "diffuse", "plane"} <= names
     assert set(choice.pass_time) >= {LEAN, E.label, P.label}
+    # A diffuse and a glossy lobe: a pilot with the diffuse one alone on the product
+    # prices the cosine tables apart from the SH walk.
+    assert {cosine_pilot(P), cosine_pilot(PO)} <= set(choice.pass_time)
     assert "at equal time" in choice.summary() or "no product strategy pays" in choice.summary()
 
 

@@ -212,7 +212,8 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     product = env.warp is not None
     plain = env.warp_plain is not None
     if product:
-        coeffs, proxy, has_lobe = env.lobes.coefficients_and_proxy(si, env.pyramid.grid_from_world, True)
+        coeffs, proxy, has_lobe = env.lobes.coefficients_and_proxy(si, env.pyramid.grid_from_world, True,
+                                                                   env.cosine_tables)
     else:
         coeffs, proxy, has_lobe = None, None, mi.Bool(False)
 
@@ -301,6 +302,13 @@ LEAN = "lean"
 
 LEAN_STRATEGY = Strategy.ENVIRONMENT
 """What every material runs in the :data:`LEAN` pilot."""
+
+
+def cosine_pilot(strategy: Strategy) -> str:
+    """Pilot key of ``strategy`` on the materials with a clamped-cosine lobe alone (the
+    others on the environment strategy): with the pilot of ``strategy`` on every
+    material, it tells the cosine tables' cost from the SH walk's."""
+    return f"{strategy.label} (cosine lobes)"
 
 
 @dataclasses.dataclass
@@ -449,20 +457,21 @@ def minimise_error_at_equal_time(variance: dict, rest: float, share: dict, base_
     """Strategy per material minimising (rest + sum V) x (base + sum share x extra).
 
     ``variance[m][s]``: material m's variance on strategy s (NaN or missing: not
-    possible); ``share[m]``: its share of the film; ``extra_time[s]``: extra pass
-    time per unit share on strategy s (0 for the environment strategy).
-    Coordinate descent from every material on the environment strategy."""
+    possible); ``share[m]``: its share of the film; ``extra_time[m][s]``: extra pass
+    time per unit share of material m on strategy s (0 for the environment strategy;
+    missing: not possible). Coordinate descent from every material on the environment
+    strategy."""
     choice = {m: Strategy.ENVIRONMENT for m in variance}
 
     def cost(choice):
         v = rest + sum(variance[m][s] for m, s in choice.items())
-        t = base_time + sum(share[m] * extra_time[s] for m, s in choice.items())
+        t = base_time + sum(share[m] * extra_time[m][s] for m, s in choice.items())
         return v * t
 
     for _ in range(sweeps):
         changed = False
         for m in variance:
-            options = [s for s in variance[m] if s in extra_time and np.isfinite(variance[m][s])]
+            options = [s for s in variance[m] if s in extra_time[m] and np.isfinite(variance[m][s])]
             best = min(options, key=lambda s: (cost({**choice, m: s}), s != choice[m]))
             if best != choice[m]:
                 choice[m], changed = best, True
@@ -511,11 +520,19 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
 
     choice, lean, gain, shared, fit = lean_choice, True, 1.0, 0.0, {}
     if product_possible:
+        # Cosine lobes take the product from tables, at a fraction of the SH walk's cost: where
+        # both kinds could run a product strategy, a pilot with the cosine lobes alone on it
+        # tells the two costs apart.
+        cosine = {k for k in materials if env.samples_from_cosine_table(k)}
         candidates = {LEAN: LEAN, Strategy.ENVIRONMENT.label: {k: Strategy.ENVIRONMENT for k in materials}}
         for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
-            if any(strategy in allowed[k] for k in materials):
-                candidates[strategy.label] = {k: strategy if strategy in allowed[k] else Strategy.ENVIRONMENT
+            capable = [k for k in materials if strategy in allowed[k]]
+            if capable:
+                candidates[strategy.label] = {k: strategy if k in capable else Strategy.ENVIRONMENT
                                               for k in materials}
+            if any(k in cosine for k in capable) and any(k not in cosine for k in capable):
+                candidates[cosine_pilot(strategy)] = {k: strategy if k in capable and k in cosine
+                                                      else Strategy.ENVIRONMENT for k in materials}
         if pilots is None:
             film = sensor.film().crop_size()
             spp = max(1, math.ceil(PILOT_LANES / (int(film[0]) * int(film[1]))))
@@ -535,11 +552,23 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
 
         pass_time = pilots.pass_time
         base = pass_time[Strategy.ENVIRONMENT.label]
-        extra = {s: 0.0 for s in cheap}
+        extra = {k: {s: 0.0 for s in cheap} for k in materials}
         for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
-            if strategy.label in pass_time:
-                switched = sum(share[k] for k in materials if strategy in allowed[k])
-                extra[strategy] = max(pass_time[strategy.label] - base, 0.0) / switched if switched > 0 else 0.0
+            if strategy.label not in pass_time:
+                continue
+            capable = [k for k in materials if strategy in allowed[k]]
+            # Extra pass time per unit of film share, per kind of lobe where a pilot told
+            # the kinds apart, else one figure for all.
+            kinds = [capable]
+            times = [base, pass_time[strategy.label]]
+            if cosine_pilot(strategy) in pass_time:
+                kinds = [[k for k in capable if k in cosine], [k for k in capable if k not in cosine]]
+                times = [base, pass_time[cosine_pilot(strategy)], pass_time[strategy.label]]
+            for kind, before, after in zip(kinds, times, times[1:]):
+                switched = sum(share[k] for k in kind)
+                per_share = max(after - before, 0.0) / switched if switched > 0 else 0.0
+                for k in kind:
+                    extra[k][strategy] = per_share
         # Materials no camera ray sees give no evidence: they keep their lean choice.
         seen = {k: v for k, v in variance.items() if share[k] > 0}
         full_choice, error_full = minimise_error_at_equal_time(seen, rest + shared, share, base, extra)

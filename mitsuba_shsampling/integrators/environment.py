@@ -107,8 +107,9 @@ class ProductEnvironment:
         #: pyramid is not compensated; built only where that strategy is
         #: allowed (``carry_all``, a second pyramid) otherwise.
         if self.lobes.has_product_lobes and (forced is None or forced.uses_product):
+            # Diffuse materials' lanes sample the product from the cosine tables (no SH walk).
             warp_options = dict(sh_depth=options.warp_sh_depth, defensive_share=options.defensive_share,
-                                proxy_depth=options.warp_proxy_depth)
+                                proxy_depth=options.warp_proxy_depth, cosine_tables=self.lobes.has_cosine_lobes)
             self.warp = self.warp_plain = ProductWarp(self.pyramid, **warp_options)
             if self.pyramid.mis_compensation:
                 self.warp_plain = ProductWarp(EnvPyramid(self.emitter), **warp_options) if carry_all else None
@@ -170,6 +171,17 @@ class ProductEnvironment:
     # Per-lane pieces shared by the integrators. When the scene does not use
     # product sampling they reduce to Mitsuba's own strategies and trace nothing.
 
+    @property
+    def cosine_tables(self) -> bool:
+        """The product samples diffuse lobes from its cosine tables
+        (:class:`~mitsuba_shsampling.warp.cosine_table.CosineTable`)."""
+        return self.warp is not None and self.warp.cosine_table is not None
+
+    def samples_from_cosine_table(self, key: int) -> bool:
+        """Material ``key`` (registry id) has a clamped-cosine lobe, which the product
+        samples from its cosine tables, at about the environment's own cost."""
+        return self.cosine_tables and key in self.lobes.cosine_ids
+
     def lobe(self, si: mi.SurfaceInteraction3f, smooth: mi.Bool):
         """(lobe, use_product): the lobe proxy at ``si`` in the grid frame
         (:class:`LaneLobe`), and the lanes whose material runs a product strategy;
@@ -180,8 +192,12 @@ class ProductEnvironment:
         smooth = mi.Bool(smooth)
         code = self.strategies.lane(si, smooth)
         wants_product = smooth & ((code == int(Strategy.PRODUCT)) | (code == int(Strategy.PRODUCT_ONLY)))
+        # Where every material on a product strategy has a cosine lobe, no SH code is traced.
+        sh_lobes = not self.cosine_tables or any(
+            self.strategies.of(key).uses_product and not self.samples_from_cosine_table(key)
+            for key in self.strategies.ids)
         coeffs, proxy, use_product = self.lobes.coefficients_and_proxy(si, self.pyramid.grid_from_world,
-                                                                       wants_product)
+                                                                       wants_product, self.cosine_tables, sh_lobes)
         return LaneLobe(coeffs, proxy), use_product & wants_product
 
     def carries_all(self, si, bsdf, smooth: mi.Bool) -> mi.Bool:

@@ -96,6 +96,20 @@ ANISOTROPIC_AZIMUTHS = 8
 lobe of the same energy and mean sharpness (the product then follows it loosely,
 BSDF sampling under MIS takes the rest, and the chooser decides whether it pays)."""
 
+def is_cosine_lobe(bsdf: mi.BSDF) -> bool:
+    """The cosine-weighted lobe of ``bsdf`` is a clamped cosine (times an albedo) for
+    every view: it reflects diffusely and has no glossy part (by its flags; a
+    frame-perturbing wrapper by its nested BSDF's, about the perturbed normal).
+    Such a lobe's product with the environment depends on the normal alone
+    (:mod:`~mitsuba_shsampling.warp.cosine_table`)."""
+    if bsdf.class_name() in FRAME_WRAPPERS:
+        nested = nested_bsdf(bsdf)
+        return nested is not None and is_cosine_lobe(nested)
+    flags = int(bsdf.flags())
+    return (mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) and not flags & int(mi.BSDFFlags.Glossy)
+            and not mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission))
+
+
 def lobe_support(bsdf: mi.BSDF) -> str:
     """How product sampling treats ``bsdf``, decided from its flags.
 
@@ -158,6 +172,7 @@ class SceneLobes:
         uvs = uv_positions(uv_samples)
         # Row 0 stays all-zero: lanes of delta, unsupported or missing BSDFs read it.
         rows = [np.zeros((2, view_nodes, 3))]
+        cosine_rows = [False]
         row_of_id: dict[int, int] = {}
         needed_bands = 0
         #: Some smooth BSDF has no product lobe (anisotropic, transmissive, a
@@ -168,6 +183,8 @@ class SceneLobes:
         self.bsdfs_with_lobes: dict[int, mi.BSDF] = {}
         #: Registry id -> the perturbed normal of a frame-perturbing wrapper with a lobe.
         self._perturbed: dict[int, PerturbedNormal] = {}
+        #: Registry ids of the BSDFs whose lobe is a clamped cosine (:func:`is_cosine_lobe`).
+        self.cosine_ids: set[int] = set()
         for shape in scene.shapes():
             bsdf = shape.bsdf()
             if bsdf is None:
@@ -204,6 +221,9 @@ class SceneLobes:
                 self._perturbed[key] = PerturbedNormal(bsdf)
             row_of_id[key] = len(rows)
             rows.append(params)
+            cosine_rows.append(is_cosine_lobe(bsdf))
+            if cosine_rows[-1]:
+                self.cosine_ids.add(key)
             needed_bands = max(needed_bands, self._bands_needed(params))
 
         self.has_product_lobes = len(rows) > 1
@@ -219,6 +239,9 @@ class SceneLobes:
         for key, row in row_of_id.items():
             id_table[key] = row
         self._row_of_id = mi.UInt32(id_table)
+        #: Some BSDF's lobe is a clamped cosine (:func:`is_cosine_lobe`).
+        self.has_cosine_lobes = any(cosine_rows)
+        self._cosine_row = mi.Bool(np.array(cosine_rows))
         self._row_of_id_size = len(id_table)
 
     # -- Host side: fitting ---------------------------------------------------
@@ -278,7 +301,8 @@ class SceneLobes:
 
     def _fitted(self, si: mi.SurfaceInteraction3f, active: mi.Bool, normal: mi.Vector3f):
         """:meth:`lookup` before the band-limit clamp of the exponent, for lobes about
-        ``normal`` (local to ``si.sh_frame``, :meth:`local_normals`)."""
+        ``normal`` (local to ``si.sh_frame``, :meth:`local_normals`), and each lane's
+        table row (0: no lobe)."""
         active = mi.Bool(active) & si.is_valid()
         bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
         active &= bsdf_id < self._row_of_id_size
@@ -298,7 +322,7 @@ class SceneLobes:
         w_g = dr.lerp(p0.y, p1.y, frac)
         s = dr.exp(dr.lerp(p0.z, p1.z, frac))
         valid = active & (row > 0) & (w_d + w_g > 0) & dr.isfinite(cos_view) & (cos_view != 0)
-        return w_d, w_g, s, valid
+        return w_d, w_g, s, valid, row
 
     def lookup(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True):
         """Interpolated proxy parameters per lane: (w_d, w_g, s, valid).
@@ -307,7 +331,7 @@ class SceneLobes:
         lanes without a fitted lobe (delta, unsupported, no hit, back side of a
         one-sided BSDF, zero energy).
         """
-        w_d, w_g, s, valid = self._fitted(si, active, self.local_normals(si, active))
+        w_d, w_g, s, valid, _ = self._fitted(si, active, self.local_normals(si, active))
         return w_d, w_g, dr.minimum(s, self.max_exponent), valid
 
     def coefficients(self, si: mi.SurfaceInteraction3f,
@@ -332,14 +356,30 @@ class SceneLobes:
 
     def coefficients_and_proxy(self, si: mi.SurfaceInteraction3f,
                                grid_from_world: Callable[[mi.Vector3f], mi.Vector3f],
-                               active: mi.Bool = True) -> tuple[list, ProxyLobe | None, mi.Bool]:
+                               active: mi.Bool = True, cosine_tables: bool = False,
+                               sh_lobes: bool = True) -> tuple[list, ProxyLobe | None, mi.Bool]:
         """:meth:`coefficients`, and the same proxy in closed form
         (:class:`~mitsuba_shsampling.warp.proxy_lobe.ProxyLobe`, with the
-        fitted exponent before the band-limit clamp; None without product lobes)."""
+        fitted exponent before the band-limit clamp; None without product lobes).
+
+        With ``cosine_tables`` (the product warp samples clamped cosines from its
+        tables), the lanes of a cosine lobe (:func:`is_cosine_lobe`) are marked
+        ``cosine_only`` in the proxy and get no coefficients (zeros): their SH
+        expansion is not computed. ``sh_lobes`` False says that every ``active``
+        lane has a cosine lobe (the caller knows it from the materials it asks
+        for): ``cosine_only`` is then the constant True and no SH code is traced
+        (no coefficients)."""
         if not self.has_product_lobes:
             return [], None, mi.Bool(False)
         local_normal = self.local_normals(si, active)
-        w_d, w_g, s_fitted, use_product = self._fitted(si, active, local_normal)
+        w_d, w_g, s_fitted, use_product, row = self._fitted(si, active, local_normal)
+        cosine_tables = cosine_tables and self.has_cosine_lobes
+        if cosine_tables and not sh_lobes:
+            cosine_only = True
+        elif cosine_tables:
+            cosine_only = dr.gather(mi.Bool, self._cosine_row, row, use_product) & use_product
+        else:
+            cosine_only = mi.Bool(False)
         s = dr.minimum(s_fitted, self.max_exponent)
 
         wi = si.wi
@@ -355,9 +395,9 @@ class SceneLobes:
             return [c + (diffuse[i] if i < len(diffuse) else 0.0) for i, c in enumerate(glossy)]
 
         # A symbolic branch: packets without a product lane skip the basis evaluation.
-        coeffs = dr.if_stmt(args=(w_d, w_g, s, normal, mirror), cond=mi.Bool(use_product),
+        coeffs = [] if cosine_only is True else dr.if_stmt(args=(w_d, w_g, s, normal, mirror), cond=mi.Bool(use_product) & ~cosine_only,
                             true_fn=rotated_lobes,
                             false_fn=lambda *_: [mi.Float(0.0) for _ in range(self.n_bands**2)])
         proxy = ProxyLobe(normal, dr.select(use_product, w_d, 0.0), mirror,
-                          dr.select(use_product, w_g, 0.0), s_fitted)
+                          dr.select(use_product, w_g, 0.0), s_fitted, cosine_only)
         return coeffs, proxy, use_product

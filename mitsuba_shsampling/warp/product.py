@@ -51,17 +51,15 @@ from typing import NamedTuple
 import drjit as dr
 import mitsuba as mi
 
-from ..grid import Cell, child_phi_centres, grid_coordinates, grid_direction
+from ..grid import Cell, child_phi_centres, grid_coordinates
 from ..sh.basis import as_coefficients, bands_of
-from .hierarchy import (Split, check_depth, descend_pyramid_pdf, descend_pyramid_sample, leaf_density,
-                        sample_leaf, select_child, walk_pdf_absolute, walk_sample_absolute)
+from .cosine_table import TABLE_DEPTH, CosineTable
+from .env_leaves import finish_pdf, finish_sample
+from .hierarchy import Split, check_depth, select_child, walk_pdf_absolute, walk_sample_absolute
 from .hsw import SHCellState, SHCellWeights
 from .proxy_lobe import ProxyLobe, moment_proxy
 
 
-#: Fraction of a leaf's width kept clear of its edges when placing a sample
-#: (see :meth:`ProductWarp.sample`).
-LEAF_EDGE_MARGIN = 2.0**-10
 
 
 def check_sh_depth(sh_depth) -> int:
@@ -240,30 +238,6 @@ class ProductWeights:
         return ProductState(sh_state, pending.mass_per_weight * chosen, pending.share, centre)
 
 
-def place_in_leaf(pyramid, leaf: Cell, t: mi.Point2f, prob, valid, u: mi.Point2f):
-    """(world direction, solid-angle pdf) of the point ``t`` in [0,1)^2 of ``leaf``, chosen with
-    probability ``prob``: by the bilinear interpolant of the pyramid's target at the leaf's
-    corners (:meth:`EnvPyramid.leaf_corners`); :func:`leaf_pdf` is its density."""
-    valid = valid & (not pyramid.is_black)
-    # Keep the point off the leaf's edges: the float32 round trip
-    # grid -> world (to_world) -> grid in pdf() moves a direction by
-    # ~1e-7, which on an edge can cross into a neighbouring leaf with
-    # another (possibly zero) probability. The margin moves at most
-    # LEAF_EDGE_MARGIN of a leaf's mass within the leaf; after `depth`
-    # rescalings t has only ~2^(depth - 24) resolution anyway.
-    t = dr.clip(t, LEAF_EDGE_MARGIN, 1.0 - LEAF_EDGE_MARGIN)
-    z, phi, density = sample_leaf("bilinear", leaf, t, pyramid.leaf_corners)
-    d = pyramid.world_from_grid(grid_direction(z, phi))
-    d = dr.select(valid, d, mi.warp.square_to_uniform_sphere(u))
-    return d, dr.select(valid, prob * density / leaf.area, 0.0)
-
-
-def leaf_pdf(pyramid, leaf: Cell, z, phi) -> mi.Float:
-    """Density (per steradian, given the leaf) with which :func:`place_in_leaf` places a
-    point at grid coordinates (z, phi) of ``leaf``."""
-    return leaf_density("bilinear", leaf, z, phi, pyramid.leaf_corners) / leaf.area
-
-
 class ProductWarp:
     """Product sampler of an SH lobe and an environment map.
 
@@ -286,6 +260,12 @@ class ProductWarp:
         children below the SH levels (None: none, the environment alone
         below them). Capped at the pyramid's depth.
 
+    Parameter ``cosine_tables`` (bool, default False):
+        Build the :class:`~.cosine_table.CosineTable` of the pyramid (10.6 MB,
+        where the pyramid is at least :data:`~.cosine_table.TABLE_DEPTH` deep):
+        lanes whose proxy is ``cosine_only`` (a diffuse lobe) are then sampled
+        from it, at about the cost of the environment's own sampling.
+
     ``sample(coeffs, u, proxy=None)`` returns (world direction, solid-angle
     pdf); ``pdf(coeffs, d, proxy=None)`` evaluates the density for world
     directions. ``coeffs`` are n^2 per-lane SH coefficients in the grid frame,
@@ -300,13 +280,16 @@ class ProductWarp:
 
     def __init__(self, pyramid, sh_depth: int | None = SH_DEPTH_WITH_PROXY,
                  defensive_share: float = DEFAULT_DEFENSIVE_SHARE,
-                 proxy_depth: int | None = DEFAULT_PROXY_DEPTH):
+                 proxy_depth: int | None = DEFAULT_PROXY_DEPTH, cosine_tables: bool = False):
         self.pyramid = pyramid
         self.depth = check_depth(pyramid.depth)
         #: Levels with analytic SH weights (None: chosen from the band count).
         self.sh_depth = None if sh_depth is None else check_sh_depth(sh_depth)
         self.defensive_share = check_defensive_share(defensive_share)
         self.proxy_depth = None if proxy_depth is None else min(check_depth(proxy_depth), self.depth)
+        #: The diffuse lobes' sampler (None: every lane walks its SH lobe).
+        self.cosine_table = (CosineTable(pyramid, self.defensive_share)
+                             if cosine_tables and self.depth >= TABLE_DEPTH else None)
 
     def weights(self, coeffs, proxy: ProxyLobe | None = None) -> ProductWeights:
         """The weight provider that :meth:`sample` and :meth:`pdf` walk (the cost
@@ -321,19 +304,42 @@ class ProductWarp:
         """The SH levels the walk runs for lobes of ``n_bands`` bands."""
         return default_sh_depth(n_bands) if self.sh_depth is None else self.sh_depth
 
+    def _uses_table(self, proxy: ProxyLobe | None) -> bool:
+        return self.cosine_table is not None and proxy is not None and proxy.cosine_only is not False
+
     def sample(self, coeffs, u: mi.Point2f, proxy: ProxyLobe | None = None):
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
+        if not self._uses_table(proxy):
+            return self._sample_lobe(coeffs, u, proxy)
+        if proxy.cosine_only is True:  # every lane's lobe is a cosine: no SH code at all
+            return self.cosine_table.sample(proxy.normal, u)
+        # A symbolic branch: a diffuse lobe's lanes read its table (no SH level, no
+        # proxy level), and a SIMD packet runs only the walks its lanes need.
+        return dr.if_stmt(args=(coeffs, u, proxy), cond=mi.Bool(proxy.cosine_only),
+                          true_fn=lambda c, v, p: self.cosine_table.sample(p.normal, v),
+                          false_fn=self._sample_lobe)
+
+    def pdf(self, coeffs, d: mi.Vector3f, proxy: ProxyLobe | None = None) -> mi.Float:
+        """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
+        if not self._uses_table(proxy):
+            return self._lobe_pdf(coeffs, d, proxy)
+        if proxy.cosine_only is True:
+            return self.cosine_table.pdf(proxy.normal, d)
+        return dr.if_stmt(args=(coeffs, d, proxy), cond=mi.Bool(proxy.cosine_only),
+                          true_fn=lambda c, v, p: self.cosine_table.pdf(p.normal, v),
+                          false_fn=self._lobe_pdf)
+
+    def _sample_lobe(self, coeffs, u: mi.Point2f, proxy: ProxyLobe | None = None):
+        """:meth:`sample` by the SH and proxy levels."""
         provider = self.weights(coeffs, proxy)
         cell, t, prob, valid, _ = walk_sample_absolute(provider, provider.walk_depth, u)
         # Below the product levels both parts of the mixture follow the
         # environment: its own pyramid finishes the walk.
-        leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, cell, self.depth, t)
-        return place_in_leaf(self.pyramid, leaf, t, prob * p_leaf, valid, u)
+        return finish_sample(self.pyramid, cell, t, prob, valid, u)
 
-    def pdf(self, coeffs, d: mi.Vector3f, proxy: ProxyLobe | None = None) -> mi.Float:
-        """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
+    def _lobe_pdf(self, coeffs, d: mi.Vector3f, proxy: ProxyLobe | None = None) -> mi.Float:
+        """Density of :meth:`_sample_lobe`."""
         z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
         provider = self.weights(coeffs, proxy)
         cell, prob, _ = walk_pdf_absolute(provider, provider.walk_depth, z, phi)
-        leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.depth, z, phi)
-        return prob * p_leaf * leaf_pdf(self.pyramid, leaf, z, phi)
+        return finish_pdf(self.pyramid, cell, prob, z, phi)

@@ -56,6 +56,10 @@ class ProxyLobe(NamedTuple):
     glossy_weight: mi.Float
     exponent: mi.Float
     """The fitted Phong exponent, not widened to the band limit (+inf: mirror)."""
+    cosine_only: mi.Bool | bool = False
+    """Per lane: the lobe is the clamped cosine about ``normal`` alone (a diffuse
+    BSDF): :class:`~.product.ProductWarp` samples it from its cosine tables
+    (:mod:`.cosine_table`), without SH levels."""
 
     def children_values(self, cell: Cell, centres) -> tuple:
         """The proxy at the centres of the four children of ``cell`` (order

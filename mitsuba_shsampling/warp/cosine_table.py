@@ -1,0 +1,202 @@
+"""Product sampling of a clamped cosine and the environment, from one table per normal.
+
+A diffuse lobe's shape is max(n . w, 0) whatever the view: it depends on the
+normal n alone. So the product max(n . w, 0) x L(w) needs no per-lane SH
+expansion: :class:`CosineTable` tabulates it once per scene for the normals at
+the centres of :data:`NORMAL_BINS` x :data:`NORMAL_BINS` bins on each face of a
+cube in world space (486 normals, at most about 9 degrees from any normal, and
+the world's axes, where walls, floors and ceilings face, exactly at a bin's centre),
+down to level :data:`TABLE_DEPTH` of the environment's pyramid, and a lane walks the table of the normal bin its own
+normal falls in. Each table holds the same defensive mixture as
+:class:`~.product.ProductWeights`,
+
+    W(c) = (1 - e) T(c) / T(root) + e E(c) / E(root),    T(c) = E(c) max(n_bin . w_c, 0),
+
+with E the pyramid's cell integral and w_c the cell's centre, summed up the
+levels, so the walk's weights are absolute (:func:`~.hierarchy.walk_sample_absolute`)
+and the pdf walk reads one weight. Below the table both parts of the mixture
+follow the environment, and the pyramid finishes the walk exactly as in
+:class:`~.product.ProductWarp` (the same descent and leaf placement).
+
+A lane's own normal differs from its bin's by up to half a bin: the table is then
+the product for a slightly tilted cosine. That changes how well the samples follow
+the integrand, not the estimate: the pdf is the exact density of the walk, and
+the defensive share e keeps it positive wherever the map is lit (directions
+above the lane's horizon but below the bin's included).
+
+Cost per sample: the normal's bin, :data:`TABLE_DEPTH` gathers of four
+contiguous weights, then the pyramid's descent; the pdf is one gather besides
+the pyramid's two. No SH coefficients, no proxy levels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..grid import Cell, grid_coordinates
+from .env_leaves import finish_pdf, finish_sample
+from .hierarchy import Split, walk_pdf_absolute, walk_sample_absolute
+
+TABLE_DEPTH = 6
+"""Levels the tables cover (4096 cells of about 3.2 degrees at the finest): the
+depth where the product warp's proxy levels end (:data:`~.product.DEFAULT_PROXY_DEPTH`)."""
+
+NORMAL_BINS = 9
+"""Bins per side of each cube face: 6 x 9 x 9 = 486 normals, 10.6 MB of tables. Odd,
+so that each world axis is a bin's centre; an equal-area (z, phi) grid of normals
+would put the world's up at 20 degrees from its nearest bin centre (the pole's
+cells are slivers) and the horizontal normals on bin boundaries."""
+
+
+def _block_offset(level: int) -> int:
+    """Index of the first 4-float block of level + 1 in one table (block 0 is the root)."""
+    return 1 + (4**level - 1) // 3
+
+
+BLOCKS_PER_TABLE = _block_offset(TABLE_DEPTH)
+
+
+def _cell_centres(level: int) -> np.ndarray:
+    """(2^level, 2^level, 3) grid-frame directions of the cells' centres, float64."""
+    n = 1 << level
+    z = -1.0 + (np.arange(n) + 0.5) * (2.0 / n)
+    phi = (np.arange(n) + 0.5) * (2.0 * math.pi / n)
+    s = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    return np.stack(np.broadcast_arrays(s[:, None] * np.cos(phi)[None, :],
+                                        s[:, None] * np.sin(phi)[None, :], z[:, None]), axis=-1)
+
+
+def bin_normals() -> np.ndarray:
+    """(bins, 3) world-space unit normals at the bins' centres, in the order of
+    :func:`normal_bin`: face (+x, -x, +y, -y, +z, -z), then the two other axes'
+    coordinates (in axis order) over the major one, each in :data:`NORMAL_BINS` steps."""
+    steps = -1.0 + (np.arange(NORMAL_BINS) + 0.5) * (2.0 / NORMAL_BINS)
+    u, v = np.meshgrid(steps, steps, indexing="ij")
+    faces = []
+    for axis in range(3):
+        others = [k for k in range(3) if k != axis]
+        for sign in (1.0, -1.0):
+            d = np.zeros((NORMAL_BINS, NORMAL_BINS, 3))
+            d[..., axis], d[..., others[0]], d[..., others[1]] = sign, u, v
+            faces.append(d.reshape(-1, 3))
+    normals = np.concatenate(faces)
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def normal_bin(n: mi.Vector3f) -> mi.UInt32:
+    """Bin of world-space normals ``n`` (:func:`bin_normals`' order): the cube face of
+    the largest coordinate, then the other two over it."""
+    a = dr.abs(n)
+    x_major = (a.x >= a.y) & (a.x >= a.z)
+    y_major = ~x_major & (a.y >= a.z)
+    major = dr.select(x_major, a.x, dr.select(y_major, a.y, a.z))
+    first = dr.select(x_major, n.y, n.x)
+    second = dr.select(x_major | y_major, n.z, n.y)
+    negative = dr.select(x_major, n.x, dr.select(y_major, n.y, n.z)) < 0
+    face = dr.select(x_major, 0, dr.select(y_major, 2, 4)) + dr.select(negative, 1, 0)
+    scale = 0.5 * NORMAL_BINS / dr.maximum(major, 1e-30)
+
+    def step(c):
+        return mi.UInt32(dr.clip(dr.fma(c, scale, 0.5 * NORMAL_BINS), 0.0, NORMAL_BINS - 1))
+
+    return (mi.UInt32(face) * NORMAL_BINS + step(first)) * NORMAL_BINS + step(second)
+
+
+def mixture_tables(env_cells: np.ndarray, normals: np.ndarray, defensive_share: float) -> np.ndarray:
+    """W per normal at level :data:`TABLE_DEPTH`: (normals, 2^D, 2^D), float64, each summing to 1.
+
+    ``env_cells`` is the pyramid's level D (non-negative cell integrals), ``normals``
+    (count, 3) grid-frame unit normals. A normal whose hemisphere holds no light
+    gets the environment alone (e = 1), as a product lane whose lobe has no mass does."""
+    env = np.asarray(env_cells, dtype=np.float64)
+    cosines = np.maximum(normals @ _cell_centres(TABLE_DEPTH).reshape(-1, 3).T, 0.0)
+    product = cosines * env.reshape(1, -1)
+    product_total = product.sum(axis=1, keepdims=True)
+    env_part = env.reshape(1, -1) / env.sum()
+    lit = product_total > 0
+    tables = np.where(lit, (1.0 - defensive_share) * product / np.where(lit, product_total, 1.0)
+                      + defensive_share * env_part, env_part)
+    n = 1 << TABLE_DEPTH
+    return tables.reshape(-1, n, n)
+
+
+def _blocked_tables(finest: np.ndarray) -> np.ndarray:
+    """The tables' sum pyramids in the layout of :class:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid`
+    (block 0 the root, then one block of four children per parent, level by level),
+    one after the other: (bins x :data:`BLOCKS_PER_TABLE` x 4,) float32."""
+    bins = finest.shape[0]
+    out = np.zeros((bins, 4 * BLOCKS_PER_TABLE))
+    level = finest
+    for k in range(TABLE_DEPTH, 0, -1):
+        m = level.shape[1] // 2
+        begin = 4 * _block_offset(k - 1)
+        out[:, begin:begin + 4 * m * m] = level.reshape(bins, m, 2, m, 2).transpose(0, 1, 3, 2, 4).reshape(bins, -1)
+        level = level.reshape(bins, m, 2, m, 2).sum(axis=(2, 4))
+    out[:, 0] = level[:, 0, 0]
+    return out.astype(np.float32).ravel()
+
+
+class CosineTableWeights:
+    """Weight provider of the absolute walks (:mod:`.hierarchy`): the four children's
+    mixture weights W of one lane's table, one gather a level."""
+
+    def __init__(self, table: "CosineTable", first_block: mi.UInt32):
+        self.table, self.first_block = table, first_block
+
+    def root(self):
+        return None
+
+    def children(self, state, cell: Cell) -> Split:
+        block = self.first_block + _block_offset(cell.level) + ((mi.UInt32(cell.iz) << cell.level) | mi.UInt32(cell.iphi))
+        return Split(tuple(dr.gather(mi.Vector4f, self.table.buffer, block)), None)
+
+    def advance(self, state, pending, cell: Cell, a, b):
+        return None
+
+
+class CosineTable:
+    """Sampler of max(n . w, 0) x environment (defensively mixed) for per-lane normals.
+
+    Parameter ``pyramid`` (:class:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid`, at
+    least :data:`TABLE_DEPTH` levels deep): the environment; the tables follow its
+    cells (compensated where it is).
+
+    Parameter ``defensive_share`` (float in (0, 1]): e, the environment's own share.
+
+    ``sample(normal, u)`` returns (world direction, solid-angle pdf) for grid-frame unit
+    normals; ``pdf(normal, d)`` the density of world directions ``d``. Both read the
+    table of the normal's bin (:func:`normal_bin`).
+    """
+
+    def __init__(self, pyramid, defensive_share: float):
+        if pyramid.depth < TABLE_DEPTH:
+            raise ValueError(f"CosineTable needs a pyramid at least {TABLE_DEPTH} levels deep, got {pyramid.depth}")
+        self.pyramid = pyramid
+        self.defensive_share = defensive_share
+        world = bin_normals()
+        grid = pyramid.grid_from_world(mi.Vector3f(*(mi.Float(c.astype(np.float32)) for c in world.T)))
+        normals = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in (grid.x, grid.y, grid.z)], axis=1)
+        tables = (mixture_tables(pyramid.level_numpy(TABLE_DEPTH), normals, defensive_share) if not pyramid.is_black
+                  else np.full((len(world), 1 << TABLE_DEPTH, 1 << TABLE_DEPTH), 4.0**-TABLE_DEPTH))
+        self.buffer = mi.Float(_blocked_tables(tables))
+        self.nbytes = 4 * dr.width(self.buffer)
+        dr.eval(self.buffer)
+
+    def weights(self, normal: mi.Vector3f) -> CosineTableWeights:
+        """The walk's weight provider for the tables of these grid-frame normals' bins."""
+        return CosineTableWeights(self, normal_bin(self.pyramid.world_from_grid(normal)) * BLOCKS_PER_TABLE)
+
+    def sample(self, normal: mi.Vector3f, u: mi.Point2f):
+        """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
+        cell, t, prob, valid, _ = walk_sample_absolute(self.weights(normal), TABLE_DEPTH, u)
+        return finish_sample(self.pyramid, cell, t, prob, valid, u)
+
+    def pdf(self, normal: mi.Vector3f, d: mi.Vector3f) -> mi.Float:
+        """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
+        z, phi = grid_coordinates(self.pyramid.grid_from_world(d))
+        cell, prob, _ = walk_pdf_absolute(self.weights(normal), TABLE_DEPTH, z, phi)
+        return finish_pdf(self.pyramid, cell, prob, z, phi)
