@@ -253,3 +253,33 @@ def test_a_scene_of_diffuse_and_glossy_product_lanes_is_unbiased():
         integrator = mi.load_dict({"type": "sh_direct", "strategy": strategy})
         assert integrator.scenes.get(scene).cosine_tables
         assert_unbiased(scene, integrator, mi.load_dict({"type": "path", "max_depth": 2}))
+
+
+def test_each_diffuse_material_takes_the_tables_unless_its_sh_walk_is_predicted_less_noisy():
+    """The quadrature with and without the tables, per material: the tables unless the SH walk's
+    best product strategy has less variance (visibility can favour the looser walk)."""
+    from mitsuba_shsampling.integrators.chooser import choose_cosine_sampling
+    from mitsuba_shsampling.integrators.environment import ProductEnvironment
+    from mitsuba_shsampling.integrators.options import DirectOptions
+    from mitsuba_shsampling.integrators.strategy import Strategy
+    from mitsuba_shsampling.scene_materials import registry_id
+
+    scene = mi.load_dict({
+        "type": "scene", "env": {"type": "envmap", "filename": REAL_MAP},
+        "wall": {"type": "rectangle", "bsdf": {"type": "diffuse"}},
+        "floor": {"type": "disk", "bsdf": {"type": "diffuse", "reflectance": 0.3}},
+        "ball": {"type": "sphere", "bsdf": {"type": "roughconductor"}}})
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    ids = {shape.id(): registry_id(shape.bsdf()) for shape in scene.shapes()}
+    wall, floor = ids["wall"], ids["floor"]
+    assert env.lobes.tabled_ids == env.lobes.cosine_ids == {wall, floor}
+    keys = np.array([wall, wall, floor, floor])
+    tabled = np.full((4, len(Strategy)), 1.0)
+    walked = tabled.copy()
+    walked[keys == floor, Strategy.PRODUCT_ONLY] = 0.5  # the floor's SH walk is predicted better
+    tabled[keys == wall, Strategy.PRODUCT] = 0.6        # the wall's tables are
+    variances = choose_cosine_sampling(env, tabled, walked, keys)
+    assert env.lobes.tabled_ids == {wall}
+    assert np.array_equal(variances[keys == floor], walked[keys == floor])
+    assert np.array_equal(variances[keys == wall], tabled[keys == wall])
+    assert env.samples_from_cosine_table(wall) and not env.samples_from_cosine_table(floor)

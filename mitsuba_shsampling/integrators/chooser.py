@@ -127,9 +127,13 @@ class StrategyChoice:
     environment pilots by construction)."""
     pilots: "Pilots | None" = None
     """What the pilots measured, reused when the scene's parameters change."""
+    cosine_tables: list = dataclasses.field(default_factory=list)
+    """Materials with a cosine lobe whose product is sampled from the cosine tables (the
+    others with one walk their SH lobe: :func:`choose_cosine_sampling`)."""
 
     def as_dict(self) -> dict:
         return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
+                "cosine_tables": list(self.cosine_tables),
                 "pass_time_s": dict(self.pass_time), "shared_variance": self.shared_variance,
                 "calibration": {s.label: f for s, f in (self.pilots.calibration if self.pilots else {}).items()},
                 "pilot_variance": {k: {"predicted": p, "measured": m} for k, (p, m) in self.pilot_variance.items()},
@@ -178,8 +182,11 @@ def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
 
 
 def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int, n_b: int,
-                    directions: int = DIRECTIONS, seed: int = 0) -> np.ndarray:
+                    directions: int = DIRECTIONS, seed: int = 0, cosine_tables: bool = True) -> np.ndarray:
     """Variance of the environment estimator at each shading point, per strategy.
+
+    With ``cosine_tables`` False the product of every lobe is its SH walk's, the cosine
+    lobes' included (else theirs is their table's, where the product has tables).
 
     Returns an array (points, 4), indexed by :class:`Strategy`: the variance
     (averaged over the colour channels, as the report's MSE is) of one lane's
@@ -213,7 +220,7 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     plain = env.warp_plain is not None
     if product:
         coeffs, proxy, has_lobe = env.lobes.coefficients_and_proxy(si, env.pyramid.grid_from_world, True,
-                                                                   env.cosine_tables)
+                                                                   env.cosine_tables and cosine_tables)
     else:
         coeffs, proxy, has_lobe = None, None, mi.Bool(False)
 
@@ -480,6 +487,30 @@ def minimise_error_at_equal_time(variance: dict, rest: float, share: dict, base_
     return choice, cost(choice)
 
 
+def choose_cosine_sampling(env, tabled: np.ndarray, walked: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Per material with a cosine lobe, sample its product from the cosine tables or by its SH
+    walk, whichever the quadrature predicts the less variance for (its best product strategy;
+    the tables on a tie: they cost less). Sets :meth:`SceneLobes.sample_from_tables` and
+    returns the frames' variances (``tabled`` and ``walked``: :func:`frame_variances` with and
+    without the tables) with each material's rows from its choice.
+
+    Visibility decides it: without it the tables follow max(n . w, 0) x L exactly and win
+    everywhere; inside a room, the SH walk's looser distribution can reach the openings more
+    often than the tables' close one (docs/MEASUREMENTS.md, "Cosine tables")."""
+    products = [int(s) for s in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY)]
+    chosen, out = set(), tabled.copy()
+    for key in env.lobes.cosine_ids:
+        rows = keys == key
+        with np.errstate(invalid="ignore"):
+            best = [np.nanmin(np.sum(v[rows][:, products], axis=0)) if rows.any() else 0.0 for v in (tabled, walked)]
+        if not best[1] < best[0]:
+            chosen.add(key)
+        else:
+            out[rows] = walked[rows]
+    env.lobes.sample_from_tables(chosen)
+    return out
+
+
 def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: Callable[[int, int], object],
                       pilots: Pilots | None = None) -> StrategyChoice:
     """Choose and assign (``env.strategies``) a strategy for every material; when no
@@ -498,6 +529,9 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     variances = frame_variances(env, si, bsdf, n_e, n_b)
     keys = np.broadcast_to(dr.reinterpret_array(mi.UInt32, bsdf).numpy(), (dr.width(si),)) \
         if dr.width(si) else np.zeros(0, dtype=np.uint32)
+    if env.cosine_tables:
+        variances = choose_cosine_sampling(env, variances, frame_variances(env, si, bsdf, n_e, n_b, cosine_tables=False),
+                                           keys)
 
     materials = list(table.ids)
     allowed = {key: env.allowed(key) for key in materials}
@@ -588,7 +622,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         report.append(MaterialChoice(env.material_name(key), s, share[key], dict(v),
                                      reference / v[s] if v[s] > 0 else 1.0))
     return StrategyChoice(report, dict(pilots.pass_time) if pilots else {}, gain, lean,
-                          time.perf_counter() - start, shared, fit, pilots)
+                          time.perf_counter() - start, shared, fit, pilots,
+                          sorted(env.material_name(k) for k in env.lobes.tabled_ids) if env.cosine_tables else [])
 
 
 class StrategyChooser:

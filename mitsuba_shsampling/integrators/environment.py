@@ -180,7 +180,7 @@ class ProductEnvironment:
     def samples_from_cosine_table(self, key: int) -> bool:
         """Material ``key`` (registry id) has a clamped-cosine lobe, which the product
         samples from its cosine tables, at about the environment's own cost."""
-        return self.cosine_tables and key in self.lobes.cosine_ids
+        return self.cosine_tables and key in self.lobes.tabled_ids
 
     def lobe(self, si: mi.SurfaceInteraction3f, smooth: mi.Bool):
         """(lobe, use_product): the lobe proxy at ``si`` in the grid frame
@@ -218,9 +218,9 @@ class ProductEnvironment:
         in ``plain`` lanes, from :attr:`warp` in the others (a symbolic branch,
         so a SIMD packet runs only the walk its lanes need).
 
-        Diffuse lanes walk all the bands: a further branch with only the 3
-        that describe them cost more (a larger kernel) than it saved
-        (docs/MEASUREMENTS.md, "Product allocation")."""
+        Lanes of a diffuse lobe (``lobe.proxy.cosine_only``) read the warp's cosine
+        tables instead of walking their SH lobe (:class:`~mitsuba_shsampling.warp.product.ProductWarp`;
+        docs/MEASUREMENTS.md, "Cosine tables")."""
         if plain is False or self.warp_plain is self.warp:
             return self.warp.sample(lobe.coeffs, u, lobe.proxy)
         if plain is True:

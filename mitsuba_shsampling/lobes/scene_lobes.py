@@ -172,7 +172,6 @@ class SceneLobes:
         uvs = uv_positions(uv_samples)
         # Row 0 stays all-zero: lanes of delta, unsupported or missing BSDFs read it.
         rows = [np.zeros((2, view_nodes, 3))]
-        cosine_rows = [False]
         row_of_id: dict[int, int] = {}
         needed_bands = 0
         #: Some smooth BSDF has no product lobe (anisotropic, transmissive, a
@@ -221,8 +220,7 @@ class SceneLobes:
                 self._perturbed[key] = PerturbedNormal(bsdf)
             row_of_id[key] = len(rows)
             rows.append(params)
-            cosine_rows.append(is_cosine_lobe(bsdf))
-            if cosine_rows[-1]:
+            if is_cosine_lobe(bsdf):
                 self.cosine_ids.add(key)
             needed_bands = max(needed_bands, self._bands_needed(params))
 
@@ -240,9 +238,21 @@ class SceneLobes:
             id_table[key] = row
         self._row_of_id = mi.UInt32(id_table)
         #: Some BSDF's lobe is a clamped cosine (:func:`is_cosine_lobe`).
-        self.has_cosine_lobes = any(cosine_rows)
-        self._cosine_row = mi.Bool(np.array(cosine_rows))
+        self.has_cosine_lobes = bool(self.cosine_ids)
+        self._rows = dict(row_of_id)
+        self.sample_from_tables(self.cosine_ids)
         self._row_of_id_size = len(id_table)
+
+    def sample_from_tables(self, keys) -> None:
+        """The cosine lobes (registry ids among :attr:`cosine_ids`) whose lanes are marked
+        ``cosine_only`` (sampled from the product's cosine tables); the others walk their
+        SH lobe. All of them by default. Device data: no kernel is traced again."""
+        #: Registry ids of the cosine lobes sampled from the tables.
+        self.tabled_ids: set[int] = set(keys) & self.cosine_ids
+        flags = np.zeros(max(self._rows.values(), default=0) + 1, dtype=bool)
+        for key in self.tabled_ids:
+            flags[self._rows[key]] = True
+        self._cosine_row = mi.Bool(flags)
 
     # -- Host side: fitting ---------------------------------------------------
 
