@@ -117,18 +117,32 @@ def test_pdf_is_never_below_the_defensive_share_of_the_environments(sun_pyramid)
 
 
 def test_tables_are_the_cosine_weighted_environment_mixed_with_the_environment():
-    """At the table's finest level W = (1 - e) E cos+ / sum + e E / sum, and 0 where the map is dark."""
+    """At the table's finest level W = (1 - e) T / sum T + e E / sum E, T the sum over the four
+    finer cells of their integral times the cosine at their centre; 0 where the map is dark."""
     rng = np.random.default_rng(5)
-    n_cells = 1 << TABLE_DEPTH
-    env = rng.random((n_cells, n_cells)) * (rng.random((n_cells, n_cells)) > 0.3)
-    normal = np.array([[0.0, 0.0, 1.0]])
-    table = mixture_tables(env, normal, SHARE)[0]
-    z = -1.0 + (np.arange(n_cells) + 0.5) * (2.0 / n_cells)
-    cosine = np.maximum(z, 0.0)[:, None] * np.ones(n_cells)[None, :]
-    expected = (1 - SHARE) * env * cosine / np.sum(env * cosine) + SHARE * env / env.sum()
-    assert np.allclose(table, expected)
+    n_cells, fine = 1 << TABLE_DEPTH, 2 << TABLE_DEPTH
+    env = rng.random((fine, fine)) * (rng.random((fine, fine)) > 0.3)
+    env[:2] = 0.0  # a dark band: both finer rows of the cells there
+    table = mixture_tables(env, np.array([[0.0, 0.0, 1.0]]), SHARE)[0]
+    z = -1.0 + (np.arange(fine) + 0.5) * (2.0 / fine)
+    lit = (env * np.maximum(z, 0.0)[:, None]).reshape(n_cells, 2, n_cells, 2).sum(axis=(1, 3))
+    coarse = env.reshape(n_cells, 2, n_cells, 2).sum(axis=(1, 3))
+    assert np.allclose(table, (1 - SHARE) * lit / lit.sum() + SHARE * coarse / coarse.sum())
     assert table.sum() == pytest.approx(1.0)
-    assert np.all(table[env == 0] == 0)
+    assert np.all(table[0] == 0)
+
+
+def test_a_cell_astride_the_horizon_keeps_product_weight():
+    """A horizontal normal whose horizon runs through the centres of one column of level-6
+    cells (cosine 0 there): those cells keep the product weight of their lit halves."""
+    n_cells, fine = 1 << TABLE_DEPTH, 2 << TABLE_DEPTH
+    column = n_cells // 3
+    horizon = 2.0 * math.pi * (column + 0.5) / n_cells
+    normal = np.array([[math.cos(horizon - math.pi / 2), math.sin(horizon - math.pi / 2), 0.0]])
+    table = mixture_tables(np.ones((fine, fine)), normal, SHARE)[0]
+    environment_alone = SHARE / n_cells**2
+    middle = slice(n_cells // 4, 3 * n_cells // 4)  # |z| < 1/2, away from the poles
+    assert np.all(table[middle, column] > 1.2 * environment_alone)  # at its centre alone: exactly 1x
 
 
 def test_the_world_axes_are_bin_centres_and_every_centre_is_in_its_own_bin():

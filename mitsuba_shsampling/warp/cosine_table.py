@@ -10,9 +10,10 @@ down to level :data:`TABLE_DEPTH` of the environment's pyramid, and a lane walks
 normal falls in. Each table holds the same defensive mixture as
 :class:`~.product.ProductWeights`,
 
-    W(c) = (1 - e) T(c) / T(root) + e E(c) / E(root),    T(c) = E(c) max(n_bin . w_c, 0),
+    W(c) = (1 - e) T(c) / T(root) + e E(c) / E(root),    T(c) = sum over c' in c of E(c') max(n_bin . w_c', 0),
 
-with E the pyramid's cell integral and w_c the cell's centre, summed up the
+with E the pyramid's cell integral and c' the cells one level finer than c, w_c'
+their centres (a cell astride the horizon keeps its lit half), summed up the
 levels, so the walk's weights are absolute (:func:`~.hierarchy.walk_sample_absolute`)
 and the pdf walk reads one weight. Below the table both parts of the mixture
 follow the environment, and the pyramid finishes the walk exactly as in
@@ -109,19 +110,27 @@ def normal_bin(n: mi.Vector3f) -> mi.UInt32:
 def mixture_tables(env_cells: np.ndarray, normals: np.ndarray, defensive_share: float) -> np.ndarray:
     """W per normal at level :data:`TABLE_DEPTH`: (normals, 2^D, 2^D), float64, each summing to 1.
 
-    ``env_cells`` is the pyramid's level D (non-negative cell integrals), ``normals``
-    (count, 3) grid-frame unit normals. A normal whose hemisphere holds no light
-    gets the environment alone (e = 1), as a product lane whose lobe has no mass does."""
+    ``env_cells``: a level of the pyramid at least as fine as D (non-negative cell
+    integrals, (2^k, 2^k), k >= D); ``normals`` (count, 3) grid-frame unit normals.
+    The product part of a level-D cell is the sum over its level-k cells of their
+    integral times max(n . centre, 0): with k = D + 1, a cell astride the horizon keeps
+    the weight of its lit half (at its own centre the cosine can be 0). A normal whose
+    hemisphere holds no light gets the environment alone (e = 1), as a product lane
+    whose lobe has no mass does."""
     env = np.asarray(env_cells, dtype=np.float64)
-    cosines = np.maximum(normals @ _cell_centres(TABLE_DEPTH).reshape(-1, 3).T, 0.0)
-    product = cosines * env.reshape(1, -1)
-    product_total = product.sum(axis=1, keepdims=True)
-    env_part = env.reshape(1, -1) / env.sum()
+    fine, n = env.shape[0], 1 << TABLE_DEPTH
+    centres = _cell_centres(int(round(math.log2(fine)))).reshape(-1, 3)
+    k = fine // n
+    product = np.empty((len(normals), n, n))
+    for start in range(0, len(normals), 64):  # 64 normals at a time: a few MB of temporaries
+        chunk = np.maximum(normals[start:start + 64] @ centres.T, 0.0) * env.reshape(1, -1)
+        product[start:start + 64] = chunk.reshape(-1, n, k, n, k).sum(axis=(2, 4))
+    env = env.reshape(n, k, n, k).sum(axis=(1, 3))
+    product_total = product.sum(axis=(1, 2), keepdims=True)
+    env_part = env[None] / env.sum()
     lit = product_total > 0
-    tables = np.where(lit, (1.0 - defensive_share) * product / np.where(lit, product_total, 1.0)
-                      + defensive_share * env_part, env_part)
-    n = 1 << TABLE_DEPTH
-    return tables.reshape(-1, n, n)
+    return np.where(lit, (1.0 - defensive_share) * product / np.where(lit, product_total, 1.0)
+                    + defensive_share * env_part, env_part)
 
 
 def _blocked_tables(finest: np.ndarray) -> np.ndarray:
@@ -180,7 +189,8 @@ class CosineTable:
         world = bin_normals()
         grid = pyramid.grid_from_world(mi.Vector3f(*(mi.Float(c.astype(np.float32)) for c in world.T)))
         normals = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in (grid.x, grid.y, grid.z)], axis=1)
-        tables = (mixture_tables(pyramid.level_numpy(TABLE_DEPTH), normals, defensive_share) if not pyramid.is_black
+        tables = (mixture_tables(pyramid.level_numpy(min(TABLE_DEPTH + 1, pyramid.depth)), normals, defensive_share)
+                  if not pyramid.is_black
                   else np.full((len(world), 1 << TABLE_DEPTH, 1 << TABLE_DEPTH), 4.0**-TABLE_DEPTH))
         self.buffer = mi.Float(_blocked_tables(tables))
         self.nbytes = 4 * dr.width(self.buffer)
