@@ -15,7 +15,7 @@ bootstrap interval), and against ``direct`` 1+1 (or ``path``). "bias ok" is the 
 test (p >= 1e-3), "tail ok" its tail comparison with ``direct`` (or ``path``).
 
 ``--choices`` prints, per cell, what ``strategy`` ``auto`` chose and predicted against what was
-measured: the predicted equal-time gain over the lean kernel (every material on its best
+measured (a diffuse material drawn from the cosine tables is marked "(tables)"): the predicted equal-time gain over the lean kernel (every material on its best
 environment strategy, i.e. one of Mitsuba's own) against the measured equal-time efficiency
 over the best Mitsuba strategy; and per material the chosen strategy, its predicted variance
 gain and the measured equal-sample error ratio there.
@@ -113,7 +113,8 @@ def choice_rows(report: Report | dict, family: str):
                    "predicted_gain": entry.strategy_choice["predicted_gain"],
                    "measured_timed_eff_vs_best": measured["timed_eff_vs_best"],
                    "measured_low": measured["timed_low"], "measured_high": measured["timed_high"],
-                   "chooser_s": entry.strategy_choice["seconds"], "materials": per_material}
+                   "chooser_s": entry.strategy_choice["seconds"], "materials": per_material,
+                   "cosine_tables": entry.strategy_choice.get("cosine_tables", [])}
 
 
 def print_choices(table: list[dict]) -> None:
@@ -121,8 +122,10 @@ def print_choices(table: list[dict]) -> None:
           "Mitsuba [90 %] | products chosen (predicted variance gain / measured error ratio at equal samples) |")
     print("|---|---|---|---|---|---|")
     for r in table:
-        chosen = ", ".join(f"{m['material']} {m['strategy']} ({fmt(m['predicted_gain'])} / "
-                           f"{fmt(m['measured_error_ratio'])})" for m in r["materials"]
+        # "(tables)": a diffuse material whose product is drawn from the cosine tables.
+        chosen = ", ".join(f"{m['material']} {m['strategy']}"
+                           f"{' (tables)' if m['material'] in r.get('cosine_tables', []) else ''} "
+                           f"({fmt(m['predicted_gain'])} / {fmt(m['measured_error_ratio'])})" for m in r["materials"]
                            if m["strategy"].startswith("product")) or "none"
         print(f"| {r['map']} | {r['scene']} | {'lean' if r['lean'] else 'with product'} | "
               f"{fmt(r['predicted_gain'])} | {fmt(r['measured_timed_eff_vs_best'])} [{fmt(r['measured_low'])}, "
