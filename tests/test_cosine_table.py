@@ -11,7 +11,6 @@ lanes of a diffuse lobe take the table while the others keep their SH walk.
 from __future__ import annotations
 
 import math
-import os
 
 import drjit as dr
 import mitsuba as mi
@@ -31,39 +30,22 @@ from mitsuba_shsampling.warp.cosine_table import (NORMAL_BINS, TABLE_DEPTH, Cosi
 from mitsuba_shsampling.warp.product import ProductWarp  # noqa: E402
 from mitsuba_shsampling.warp.proxy_lobe import ProxyLobe  # noqa: E402
 
-from conftest import ENVMAPS_DIR
 from leaf_chi2 import LeafAlignedChiSquareTest
+# The product warp's specification holds the maps these tests sample (its fixtures, shared).
+from test_product import REAL_MAP, real_pyramid, sun_pyramid, uniform_samples  # noqa: F401
+
+SHARE = 0.1
+
 
 def unit(v) -> list[float]:
     v = np.asarray(v, dtype=np.float64)
     return (v / np.linalg.norm(v)).tolist()
 
 
-REAL_MAP = os.path.join(str(ENVMAPS_DIR), "immenstadter_horn_1k.hdr")
-TILTED = mi.ScalarAffineTransform4f().rotate(unit([0.3, 0.8, -0.52]), 40.0)
-CHI2_DEPTH = 7
-SHARE = 0.1
-
-
-@pytest.fixture(scope="module")
-def sun_pyramid() -> EnvPyramid:
-    """Sky plus a 0.5-degree sun 1e5 times brighter, under a tilted to_world."""
-    return EnvPyramid.from_latlong(sun_sky_latlong(128, 256), to_world=TILTED, max_depth=CHI2_DEPTH)
-
-
-@pytest.fixture(scope="module")
-def real_pyramid() -> EnvPyramid:
-    return EnvPyramid(mi.load_dict({"type": "envmap", "filename": REAL_MAP}), max_depth=CHI2_DEPTH)
-
-
 def random_normals(count: int, seed: int) -> mi.Vector3f:
     n = np.random.default_rng(seed).normal(size=(count, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     return mi.Vector3f(*(mi.Float(c.astype(np.float32)) for c in n.T))
-
-
-def uniform_samples(count: int, seed: int = 7) -> mi.Point2f:
-    return mi.Point2f(np.random.default_rng(seed).random((2, count)).astype(np.float32))
 
 
 #: World normals of the chi-square cases: up (a bin's centre), tilted, and on a bin edge.
