@@ -279,3 +279,21 @@ def test_each_diffuse_material_takes_the_tables_unless_its_sh_walk_is_predicted_
     assert np.array_equal(variances[keys == floor], walked[keys == floor])
     assert np.array_equal(variances[keys == wall], tabled[keys == wall])
     assert env.samples_from_cosine_table(wall) and not env.samples_from_cosine_table(floor)
+
+
+def test_where_no_diffuse_material_runs_a_product_no_table_code_is_traced():
+    """A glossy sphere on the product, the diffuse plane on the environment: the lanes' lobes
+    say cosine_only False as a constant, so the product warp traces its SH walk alone."""
+    from mitsuba_shsampling.integrators import register
+    from mitsuba_shsampling.integrators.strategy import Strategy
+    from test_integrators import MATERIALS, make_scene
+
+    register()
+    scene = make_scene(materials={"ggx": MATERIALS["ggx"]})
+    env = mi.load_dict({"type": "sh_direct", "strategy": "product"}).scenes.get(scene)
+    assert env.cosine_tables
+    env.strategies.assign({key: Strategy.ENVIRONMENT if key in env.lobes.cosine_ids else Strategy.PRODUCT
+                           for key in env.strategies.ids})
+    si = scene.ray_intersect(scene.sensors()[0].sample_ray(0.0, 0.5, mi.Point2f(0.5, 0.5), mi.Point2f(0.5))[0])
+    lobe, _ = env.lobe(si, True)
+    assert lobe.proxy.cosine_only is False and len(lobe.coeffs) > 0

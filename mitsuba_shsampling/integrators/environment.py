@@ -192,12 +192,13 @@ class ProductEnvironment:
         smooth = mi.Bool(smooth)
         code = self.strategies.lane(si, smooth)
         wants_product = smooth & ((code == int(Strategy.PRODUCT)) | (code == int(Strategy.PRODUCT_ONLY)))
-        # Where every material on a product strategy has a cosine lobe, no SH code is traced.
-        sh_lobes = not self.cosine_tables or any(
-            self.strategies.of(key).uses_product and not self.samples_from_cosine_table(key)
-            for key in self.strategies.ids)
+        # Only the walks that some material on a product strategy runs are traced: no SH
+        # code where all of them draw from the cosine tables, no table code where none does.
+        on_product = [key for key in self.strategies.ids if self.strategies.of(key).uses_product]
+        tables = any(self.samples_from_cosine_table(key) for key in on_product)
+        sh_lobes = not tables or any(not self.samples_from_cosine_table(key) for key in on_product)
         coeffs, proxy, use_product = self.lobes.coefficients_and_proxy(si, self.pyramid.grid_from_world,
-                                                                       wants_product, self.cosine_tables, sh_lobes)
+                                                                       wants_product, tables, sh_lobes)
         return LaneLobe(coeffs, proxy), use_product & wants_product
 
     def carries_all(self, si, bsdf, smooth: mi.Bool) -> mi.Bool:

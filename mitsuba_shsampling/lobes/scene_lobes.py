@@ -389,7 +389,7 @@ class SceneLobes:
         elif cosine_tables:
             cosine_only = dr.gather(mi.Bool, self._cosine_row, row, use_product) & use_product
         else:
-            cosine_only = mi.Bool(False)
+            cosine_only = False  # no lane: the product warp traces no table code
         s = dr.minimum(s_fitted, self.max_exponent)
 
         wi = si.wi
@@ -405,7 +405,7 @@ class SceneLobes:
             return [c + (diffuse[i] if i < len(diffuse) else 0.0) for i, c in enumerate(glossy)]
 
         # A symbolic branch: packets without a product lane skip the basis evaluation.
-        coeffs = [] if cosine_only is True else dr.if_stmt(args=(w_d, w_g, s, normal, mirror), cond=mi.Bool(use_product) & ~cosine_only,
+        coeffs = [] if cosine_only is True else dr.if_stmt(args=(w_d, w_g, s, normal, mirror), cond=mi.Bool(use_product) & ~mi.Bool(cosine_only),
                             true_fn=rotated_lobes,
                             false_fn=lambda *_: [mi.Float(0.0) for _ in range(self.n_bands**2)])
         proxy = ProxyLobe(normal, dr.select(use_product, w_d, 0.0), mirror,
