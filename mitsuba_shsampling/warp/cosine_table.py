@@ -5,10 +5,10 @@ normal n alone. So the product max(n . w, 0) x L(w) needs no per-lane SH
 expansion: :class:`CosineTable` tabulates it once per scene for the normals at
 the centres of :data:`NORMAL_BINS` x :data:`NORMAL_BINS` bins on each face of a
 cube in world space (486 normals, at most about 9 degrees from any normal, and
-the world's axes, where walls, floors and ceilings face, exactly at a bin's centre),
-down to level :data:`TABLE_DEPTH` of the environment's pyramid, and a lane walks the table of the normal bin its own
-normal falls in. Each table holds the same defensive mixture as
-:class:`~.product.ProductWeights`,
+the world's axes, where walls, floors and ceilings face, exactly at a bin's
+centre), down to level :data:`TABLE_DEPTH` of the environment's pyramid, and a
+lane walks the table of the bin its own normal falls in. Each table holds the
+same defensive mixture as :class:`~.product.ProductWeights`,
 
     W(c) = (1 - e) T(c) / T(root) + e E(c) / E(root),    T(c) = sum over c' in c of E(c') max(n_bin . w_c', 0),
 
