@@ -394,6 +394,7 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
 
     times = {name: [] for name in candidates}
     images = {name: [] for name in candidates}
+    env.pilot_walks = True
     try:
         for round_ in range(repeats + 1):  # round 0 compiles each kernel once (the render reuses it)
             for name, assignment in candidates.items():
@@ -405,6 +406,7 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
                     images[name].append(np.asarray(image, dtype=np.float64))
     finally:
         env.warp, env.warp_plain = warps
+        env.pilot_walks = False
         table.assign(saved)
     # The report's measure of noise (report.metrics): per-pixel variance, channel-averaged.
     variance = {name: float(np.mean(pixel_variance(np.stack(i)))) for name, i in images.items() if len(i) > 1}

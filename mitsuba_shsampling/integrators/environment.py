@@ -72,6 +72,9 @@ class ProductEnvironment:
         self.has_dirac_materials = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Delta)
                                        for m in self._materials.values())
         self.carry_all = carry_all
+        #: Trace the cosine tables' and the SH walk's code whatever the materials run (the
+        #: chooser's pilot passes: :func:`~.chooser.measure_pass_costs`).
+        self.pilot_walks = False
         self.active = False
         self.needs_emitter_sampling = True
         other_emitters = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
@@ -194,9 +197,13 @@ class ProductEnvironment:
         wants_product = smooth & ((code == int(Strategy.PRODUCT)) | (code == int(Strategy.PRODUCT_ONLY)))
         # Only the walks that some material on a product strategy runs are traced: no SH
         # code where all of them draw from the cosine tables, no table code where none does.
+        # The chooser's pilots trace both (`pilot_walks`), so that what they time is the kernel
+        # that a choice of both kinds runs: the two walks in one kernel cost more than apart.
         on_product = [key for key in self.strategies.ids if self.strategies.of(key).uses_product]
-        tables = any(self.samples_from_cosine_table(key) for key in on_product)
-        sh_lobes = not tables or any(not self.samples_from_cosine_table(key) for key in on_product)
+        tables = any(self.samples_from_cosine_table(key) for key in (self.strategies.ids if self.pilot_walks
+                                                                     else on_product))
+        sh_lobes = self.pilot_walks or not tables or any(not self.samples_from_cosine_table(key)
+                                                         for key in on_product)
         coeffs, proxy, use_product = self.lobes.coefficients_and_proxy(si, self.pyramid.grid_from_world,
                                                                        wants_product, tables, sh_lobes)
         return LaneLobe(coeffs, proxy), use_product & wants_product
