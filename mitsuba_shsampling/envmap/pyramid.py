@@ -187,14 +187,26 @@ def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def _blocked(level: np.ndarray) -> np.ndarray:
-    """Reorder a (2m, 2m) level so that each parent's 4 children are consecutive,
-    in (z-half, phi-half) order (0,0), (0,1), (1,0), (1,1)."""
-    m = level.shape[0] // 2
-    return level.reshape(m, 2, m, 2).transpose(0, 2, 1, 3).ravel()
+def sum_pyramid_blocks(finest: np.ndarray) -> np.ndarray:
+    """The sum pyramid of a finest level in :class:`EnvPyramid`'s buffer layout, in
+    ``finest``'s dtype: (..., 2^D, 2^D) -> (..., 4 * block_offset(D)) (leading axes:
+    several pyramids at once). Block 0 is [root, 0, 0, 0]; then level by level one
+    block per parent, its children in (z-half, phi-half) order (0,0), (0,1), (1,0), (1,1)."""
+    lead = finest.shape[:-2]
+    depth = int(finest.shape[-1]).bit_length() - 1
+    out = np.zeros(lead + (4 * block_offset(depth),), dtype=finest.dtype)
+    level = finest
+    for k in range(depth, 0, -1):
+        m = level.shape[-1] // 2
+        begin = 4 * block_offset(k - 1)
+        quads = level.reshape(*lead, m, 2, m, 2)
+        out[..., begin:begin + 4 * m * m] = np.moveaxis(quads, -3, -2).reshape(*lead, -1)
+        level = quads.sum(axis=(-3, -1))
+    out[..., 0] = level[..., 0, 0]
+    return out
 
 
-def _block_offset(level):
+def block_offset(level):
     """Index of the first 4-float block of level+1 (Python int or traced UInt32)."""
     if isinstance(level, numbers.Integral):
         return 1 + ((4 ** int(level) - 1) // 3)
@@ -365,19 +377,13 @@ class EnvPyramid:
                 finest, compensated = sharpened.astype(np.float32), True
                 corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
 
-        buffer = np.zeros(4 * _block_offset(depth), dtype=np.float32)
-        level = finest
-        for k in range(depth, 0, -1):
-            begin = 4 * _block_offset(k - 1)
-            buffer[begin:begin + level.size] = _blocked(level)
-            m = level.shape[0] // 2
-            level = level.reshape(m, 2, m, 2).sum(axis=(1, 3))
-        buffer[0] = level[0, 0]
+        blocks = sum_pyramid_blocks(finest)
+        buffer = blocks.astype(np.float32)
 
         #: Finest level D; levels 0..D exist.
         self.depth: int = depth
         #: Sum of the pyramid's root (the sampling target's integral), float64.
-        self.total: float = float(level[0, 0])
+        self.total: float = float(blocks[0])
         #: Integral of scale * luminance over the sphere (radiance x sr).
         self.radiant_total: float = radiant_total
         #: Whether the mean radiance was subtracted (MIS compensation).
@@ -408,7 +414,7 @@ class EnvPyramid:
         a = upper-z half, b = upper-phi half. One gather; ``level`` may be a
         traced ``mi.UInt32`` (e.g. a ``dr.while_loop`` state variable).
         """
-        block = _block_offset(level) + ((mi.UInt32(iz) << level) | mi.UInt32(iphi))
+        block = block_offset(level) + ((mi.UInt32(iz) << level) | mi.UInt32(iphi))
         return dr.gather(mi.Vector4f, self.buffer, block, active)
 
     def cell_integral(self, level: int | mi.UInt32, iz: mi.UInt32, iphi: mi.UInt32,
@@ -416,7 +422,7 @@ class EnvPyramid:
         """Integral over cell (iz, iphi) at ``level`` (0..depth), radiance x sr."""
         iz, iphi = mi.UInt32(iz), mi.UInt32(iphi)
         parent_level = dr.maximum(mi.UInt32(level), 1) - 1
-        block = _block_offset(parent_level) + (((iz >> 1) << parent_level) | (iphi >> 1))
+        block = block_offset(parent_level) + (((iz >> 1) << parent_level) | (iphi >> 1))
         index = 4 * block + 2 * (iz & 1) + (iphi & 1)
         index = dr.select(mi.UInt32(level) == 0, 0, index)
         return dr.gather(mi.Float, self.buffer, index, active)
@@ -440,7 +446,7 @@ class EnvPyramid:
         if k == 0:
             return self.buffer.numpy()[:1].reshape(1, 1).copy()
         m = 1 << (k - 1)
-        begin = 4 * _block_offset(k - 1)
+        begin = 4 * block_offset(k - 1)
         blocks = self.buffer.numpy()[begin:begin + 4 * m * m].reshape(m, m, 2, 2)
         return blocks.transpose(0, 2, 1, 3).reshape(2 * m, 2 * m).copy()
 

@@ -405,9 +405,9 @@ class SceneLobes:
             return [c + (diffuse[i] if i < len(diffuse) else 0.0) for i, c in enumerate(glossy)]
 
         # A symbolic branch: packets without a product lane skip the basis evaluation.
-        coeffs = [] if cosine_only is True else dr.if_stmt(args=(w_d, w_g, s, normal, mirror), cond=mi.Bool(use_product) & ~mi.Bool(cosine_only),
-                            true_fn=rotated_lobes,
-                            false_fn=lambda *_: [mi.Float(0.0) for _ in range(self.n_bands**2)])
+        coeffs = [] if cosine_only is True else dr.if_stmt(
+            args=(w_d, w_g, s, normal, mirror), cond=mi.Bool(use_product) & ~mi.Bool(cosine_only),
+            true_fn=rotated_lobes, false_fn=lambda *_: [mi.Float(0.0) for _ in range(self.n_bands**2)])
         proxy = ProxyLobe(normal, dr.select(use_product, w_d, 0.0), mirror,
                           dr.select(use_product, w_g, 0.0), s_fitted, cosine_only)
         return coeffs, proxy, use_product

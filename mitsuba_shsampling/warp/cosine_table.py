@@ -38,6 +38,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..envmap.pyramid import block_offset, sum_pyramid_blocks
 from ..grid import Cell, grid_coordinates
 from .env_leaves import finish_pdf, finish_sample
 from .hierarchy import Split, walk_pdf_absolute, walk_sample_absolute
@@ -53,12 +54,8 @@ would put the world's up at 20 degrees from its nearest bin centre (the pole's
 cells are slivers) and the horizontal normals on bin boundaries."""
 
 
-def _block_offset(level: int) -> int:
-    """Index of the first 4-float block of level + 1 in one table (block 0 is the root)."""
-    return 1 + (4**level - 1) // 3
-
-
-BLOCKS_PER_TABLE = _block_offset(TABLE_DEPTH)
+BLOCKS_PER_TABLE = block_offset(TABLE_DEPTH)
+"""4-float blocks of one table (the layout of :func:`~mitsuba_shsampling.envmap.pyramid.sum_pyramid_blocks`)."""
 
 
 def _cell_centres(level: int) -> np.ndarray:
@@ -133,22 +130,6 @@ def mixture_tables(env_cells: np.ndarray, normals: np.ndarray, defensive_share: 
                     + defensive_share * env_part, env_part)
 
 
-def _blocked_tables(finest: np.ndarray) -> np.ndarray:
-    """The tables' sum pyramids in the layout of :class:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid`
-    (block 0 the root, then one block of four children per parent, level by level),
-    one after the other: (bins x :data:`BLOCKS_PER_TABLE` x 4,) float32."""
-    bins = finest.shape[0]
-    out = np.zeros((bins, 4 * BLOCKS_PER_TABLE))
-    level = finest
-    for k in range(TABLE_DEPTH, 0, -1):
-        m = level.shape[1] // 2
-        begin = 4 * _block_offset(k - 1)
-        out[:, begin:begin + 4 * m * m] = level.reshape(bins, m, 2, m, 2).transpose(0, 1, 3, 2, 4).reshape(bins, -1)
-        level = level.reshape(bins, m, 2, m, 2).sum(axis=(2, 4))
-    out[:, 0] = level[:, 0, 0]
-    return out.astype(np.float32).ravel()
-
-
 class CosineTableWeights:
     """Weight provider of the absolute walks (:mod:`.hierarchy`): the four children's
     mixture weights W of one lane's table, one gather a level."""
@@ -160,7 +141,7 @@ class CosineTableWeights:
         return None
 
     def children(self, state, cell: Cell) -> Split:
-        block = self.first_block + _block_offset(cell.level) + ((mi.UInt32(cell.iz) << cell.level) | mi.UInt32(cell.iphi))
+        block = self.first_block + block_offset(cell.level) + ((mi.UInt32(cell.iz) << cell.level) | mi.UInt32(cell.iphi))
         return Split(tuple(dr.gather(mi.Vector4f, self.table.buffer, block)), None)
 
     def advance(self, state, pending, cell: Cell, a, b):
@@ -192,7 +173,7 @@ class CosineTable:
         tables = (mixture_tables(pyramid.level_numpy(min(TABLE_DEPTH + 1, pyramid.depth)), normals, defensive_share)
                   if not pyramid.is_black
                   else np.full((len(world), 1 << TABLE_DEPTH, 1 << TABLE_DEPTH), 4.0**-TABLE_DEPTH))
-        self.buffer = mi.Float(_blocked_tables(tables))
+        self.buffer = mi.Float(sum_pyramid_blocks(tables).astype(np.float32).ravel())
         self.nbytes = 4 * dr.width(self.buffer)
         dr.eval(self.buffer)
 

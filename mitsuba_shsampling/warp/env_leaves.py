@@ -17,7 +17,7 @@ from ..grid import Cell, grid_direction
 from .hierarchy import descend_pyramid_pdf, descend_pyramid_sample, leaf_density, sample_leaf
 
 #: Fraction of a leaf's width kept clear of its edges when placing a sample
-#: (see :meth:`ProductWarp.sample`).
+#: (see :func:`place_in_leaf`).
 LEAF_EDGE_MARGIN = 2.0**-10
 
 

@@ -44,8 +44,8 @@ import drjit as dr
 import mitsuba as mi
 
 from ..grid import Cell, grid_coordinates, grid_direction
-from .hierarchy import LAST_BELOW_ONE, descend_pyramid_pdf, descend_pyramid_sample
-from .env_leaves import leaf_pdf, place_in_leaf
+from .env_leaves import finish_pdf, finish_sample
+from .hierarchy import LAST_BELOW_ONE, descend_pyramid_sample
 from .product import DEFAULT_DEFENSIVE_SHARE, check_defensive_share
 
 #: Cells per side of the table. Measured (64 px, 8 spp, 8 passes, MSE against ``direct``):
@@ -159,9 +159,7 @@ class OracleWarp:
         cell = Cell(self.level, dr.select(from_env, env_cell.iz, iz), dr.select(from_env, env_cell.iphi, iphi))
         t = dr.select(from_env, env_t, t)
         # Inside the cell both components follow the environment.
-        leaf, t, p_leaf = descend_pyramid_sample(self.pyramid, cell, self.pyramid.depth, t)
-        return place_in_leaf(self.pyramid, leaf, t, self.cell_probability(f, table, cell, active) * p_leaf,
-                             mi.Bool(active), u)
+        return finish_sample(self.pyramid, cell, t, self.cell_probability(f, table, cell, active), mi.Bool(active), u)
 
     def pdf(self, f: Lobe, table: OracleTable, d: mi.Vector3f, active: mi.Bool = True) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``;
@@ -174,10 +172,9 @@ class OracleWarp:
             iz = 2 * iz + dr.select(z >= step.zm, 1, 0)
             iphi = 2 * iphi + dr.select(phi >= step.phim, 1, 0)
         cell = Cell(self.level, iz, iphi)
-        leaf, p_leaf = descend_pyramid_pdf(self.pyramid, cell, self.pyramid.depth, z, phi)
         active = mi.Bool(active) & (not self.pyramid.is_black)
-        return dr.select(active, self.cell_probability(f, table, cell, active) * p_leaf
-                         * leaf_pdf(self.pyramid, leaf, z, phi), 0.0)
+        return dr.select(active, finish_pdf(self.pyramid, cell, self.cell_probability(f, table, cell, active), z, phi),
+                         0.0)
 
     @dr.syntax
     def _pick_cell(self, f: Lobe, table: OracleTable, u: mi.Point2f, active: mi.Bool):

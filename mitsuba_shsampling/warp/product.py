@@ -304,30 +304,26 @@ class ProductWarp:
         """The SH levels the walk runs for lobes of ``n_bands`` bands."""
         return default_sh_depth(n_bands) if self.sh_depth is None else self.sh_depth
 
-    def _uses_table(self, proxy: ProxyLobe | None) -> bool:
-        return self.cosine_table is not None and proxy is not None and proxy.cosine_only is not False
+    def _by_lobe(self, table_method: str, lobe_fn, coeffs, x, proxy: ProxyLobe | None):
+        """The cosine table's ``table_method`` (``sample`` or ``pdf``) of (normal, x) in the lanes
+        of a diffuse lobe (``proxy.cosine_only``), ``lobe_fn(coeffs, x, proxy)`` in the others: a
+        symbolic branch, so a SIMD packet runs only the walks its lanes need, and none is traced
+        where ``cosine_only`` is a constant."""
+        if self.cosine_table is None or proxy is None or proxy.cosine_only is False:
+            return lobe_fn(coeffs, x, proxy)
+        table_fn = getattr(self.cosine_table, table_method)
+        if proxy.cosine_only is True:  # every lane's lobe is a cosine: no SH code at all
+            return table_fn(proxy.normal, x)
+        return dr.if_stmt(args=(coeffs, x, proxy), cond=mi.Bool(proxy.cosine_only),
+                          true_fn=lambda c, v, p: table_fn(p.normal, v), false_fn=lobe_fn)
 
     def sample(self, coeffs, u: mi.Point2f, proxy: ProxyLobe | None = None):
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
-        if not self._uses_table(proxy):
-            return self._sample_lobe(coeffs, u, proxy)
-        if proxy.cosine_only is True:  # every lane's lobe is a cosine: no SH code at all
-            return self.cosine_table.sample(proxy.normal, u)
-        # A symbolic branch: a diffuse lobe's lanes read its table (no SH level, no
-        # proxy level), and a SIMD packet runs only the walks its lanes need.
-        return dr.if_stmt(args=(coeffs, u, proxy), cond=mi.Bool(proxy.cosine_only),
-                          true_fn=lambda c, v, p: self.cosine_table.sample(p.normal, v),
-                          false_fn=self._sample_lobe)
+        return self._by_lobe("sample", self._sample_lobe, coeffs, u, proxy)
 
     def pdf(self, coeffs, d: mi.Vector3f, proxy: ProxyLobe | None = None) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""
-        if not self._uses_table(proxy):
-            return self._lobe_pdf(coeffs, d, proxy)
-        if proxy.cosine_only is True:
-            return self.cosine_table.pdf(proxy.normal, d)
-        return dr.if_stmt(args=(coeffs, d, proxy), cond=mi.Bool(proxy.cosine_only),
-                          true_fn=lambda c, v, p: self.cosine_table.pdf(p.normal, v),
-                          false_fn=self._lobe_pdf)
+        return self._by_lobe("pdf", self._lobe_pdf, coeffs, d, proxy)
 
     def _sample_lobe(self, coeffs, u: mi.Point2f, proxy: ProxyLobe | None = None):
         """:meth:`sample` by the SH and proxy levels."""
