@@ -122,10 +122,26 @@ def test_sh_direct_with_several_samples_per_strategy_is_unbiased():
                     mi.load_dict({"type": "path", "max_depth": 2}))
 
 
-def test_sh_path_is_unbiased_for_multiple_bounces():
+@pytest.mark.parametrize("product_depth", [1, -1])
+def test_sh_path_is_unbiased_for_multiple_bounces(product_depth):
+    # The product forced, at the first hits only (the default) or at every vertex.
     scene = make_scene(rotated=True)
-    assert_unbiased(scene, mi.load_dict({"type": "sh_path", "max_depth": 4, "max_bands": BANDS}),
+    assert_unbiased(scene, mi.load_dict({"type": "sh_path", "max_depth": 4, "max_bands": BANDS,
+                                         "strategy": "product", "product_depth": product_depth}),
                     mi.load_dict({"type": "path", "max_depth": 4}))
+
+
+def test_product_depth_counts_vertices_from_the_camera_s_first_hit():
+    def render(max_depth, product_depth):
+        integrator = mi.load_dict({"type": "sh_path", "max_depth": max_depth, "max_bands": BANDS,
+                                   "strategy": "product", "product_depth": product_depth})
+        return mi.render(scene, integrator=integrator, spp=4, seed=7).numpy()
+
+    scene = make_scene(rotated=True)
+    # Direct lighting has one vertex: the first hit, where the product runs either way.
+    assert np.array_equal(render(2, 1), render(2, -1))
+    # With bounces the deeper vertices sample the environment alone at product_depth 1.
+    assert not np.array_equal(render(4, 1), render(4, -1))
 
 
 def test_scene_without_environment_builds_nothing_and_matches_direct():

@@ -37,6 +37,7 @@ def load_error(props) -> str:
     ("sh_direct", "proxy_depth", 6.0, "an integer", "float 6.0"),
     ("sh_path", "max_depth", "4", "an integer", "string '4'"),
     ("sh_path", "rr_depth", 5.0, "an integer", "float 5.0"),
+    ("sh_path", "product_depth", 1.0, "an integer", "float 1.0"),
 ])
 def test_a_parameter_of_the_wrong_type_names_plugin_parameter_expected_type_and_value(
         plugin, name, value, expected, kind):
@@ -55,6 +56,8 @@ def test_hide_emitters_of_the_wrong_type_is_refused_by_mitsubas_own_property_che
 @pytest.mark.parametrize("plugin, name, value, requirement", [
     ("sh_path", "max_depth", -2, "must be -1 (infinite) or >= 0"),
     ("sh_path", "rr_depth", 0, "must be > 0"),
+    ("sh_path", "product_depth", 0, "must be -1 (every vertex) or >= 1"),
+    ("sh_prb", "product_depth", -2, "must be -1 (every vertex) or >= 1"),
     ("sh_direct", "emitter_samples", -1, "must be >= 0"),
     ("sh_direct", "bsdf_samples", -1, "must be >= 0"),
     ("sh_direct", "sh_depth", -2, f"must be in [1, {MAX_DEPTH}] or -1 (automatic)"),

@@ -33,7 +33,8 @@ class SHPRBIntegrator(RBIntegrator):
     the vertex's material (``strategy``): from the product of the BSDF lobe
     proxy and the map, or from the map alone (with ``auto``, chosen per
     material before the first pass of each sampling state, as in
-    :monosp:`sh_path`), and combined with the BSDF sample that continues the
+    :monosp:`sh_path`; the product at the first ``product_depth`` vertices, the
+    map alone deeper), and combined with the BSDF sample that continues the
     path by the power heuristic (one sample each). Other emitters keep
     Mitsuba's emitter sampling; without an ``envmap`` it runs like :monosp:`prb`.
 
@@ -79,6 +80,7 @@ class SHPRBIntegrator(RBIntegrator):
         super().__init__(props)
         self.options = options
         self.max_depth = options.max_depth if options.max_depth >= 0 else 0xFFFFFFFF
+        self.product_depth = options.product_depth if options.product_depth >= 0 else 0xFFFFFFFF
         self.rr_depth = options.rr_depth
 
         def build(scene):
@@ -159,10 +161,12 @@ class SHPRBIntegrator(RBIntegrator):
         prev_bsdf_delta = mi.Bool(True)
         # Pdf of the current ray under the previous vertex's environment strategy.
         prev_env_pdf = mi.Float(0.0)
+        # Each ray is intersected where it is spawned (as sh_path does: the vertex that
+        # sampled it evaluates its environment pdf only if it escapes); camera rays coherently.
+        hit = scene.ray_intersect_preliminary(ray, True, active)
 
         while dr.hint(active, max_iterations=self.max_depth, label=f"sh_prb ({mode.name})"):
-            # The camera rays are coherent (as Mitsuba's prb traces them).
-            si = scene.ray_intersect(ray, mi.RayFlags.All, depth == 0, active)
+            si = hit.compute_surface_interaction(ray, mi.RayFlags.All, active)
             bsdf = si.bsdf(ray)
 
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
@@ -182,7 +186,7 @@ class SHPRBIntegrator(RBIntegrator):
             # Sampled without derivatives (the lobe, the direction and its pdf), so
             # that the replay draws the same direction; evaluated with them.
             smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            lobe, use_product = env.lobe(si, smooth)
+            lobe, use_product = env.lobe(si, smooth & (depth < self.product_depth))
             Lr_env = self.environment_sample(env, scene, sampler.next_2d(smooth), si, bsdf, ctx,
                                              lobe, use_product, smooth, primal)
             Lr_em = mi.Spectrum(0.0)
@@ -215,7 +219,6 @@ class SHPRBIntegrator(RBIntegrator):
                         δL += dr.forward_to(Lo)
 
             # ------------------------ Next vertex's MIS inputs -------------------------
-            prev_env_pdf = env.pdf(lobe, use_product, d, smooth & ~delta)
             prev_si = mi.Interaction3f(si)
             prev_bsdf_pdf = bs.pdf
             prev_bsdf_delta = delta
@@ -231,6 +234,8 @@ class SHPRBIntegrator(RBIntegrator):
             β = dr.select(rr_active, β * dr.rcp(rr_prob), β)
             active = active_next & (~rr_active | rr_continue) & (β_max != 0) & (bs.pdf > 0)
             depth += 1
+            hit = scene.ray_intersect_preliminary(ray, False, active)
+            prev_env_pdf = env.pdf(lobe, use_product, d, active & smooth & ~delta & ~hit.is_valid())
 
         return (L if primal else δL), valid_ray, [], L
 
