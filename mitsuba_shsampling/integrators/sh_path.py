@@ -96,7 +96,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         # Each ray is intersected where it is spawned (the camera rays here, coherently, as
         # Mitsuba's path traces them), so that the vertex that sampled it knows whether it
         # escapes before it evaluates its environment pdf; the loop carries the preliminary hit.
-        hit = scene.ray_intersect_preliminary(ray, True, active)
+        hit = scene.ray_intersect_preliminary(ray, coherent=True, active=active)
 
         while active:
             si = hit.compute_surface_interaction(ray, mi.RayFlags.All, active)
@@ -150,7 +150,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             # environment: the product's pdf walk (about a fifth of a direct pass's
             # operations) is skipped for rays that hit the scene, in every packet
             # where no lane escapes (walls, floors, the inside of a room).
-            hit = scene.ray_intersect_preliminary(ray, False, active)
+            hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
             prev_env_pdf = env.pdf(lobe, use_product, d, active & smooth & ~delta & ~hit.is_valid())
 
         return L, valid_ray, []

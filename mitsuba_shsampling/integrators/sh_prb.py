@@ -163,7 +163,7 @@ class SHPRBIntegrator(RBIntegrator):
         prev_env_pdf = mi.Float(0.0)
         # Each ray is intersected where it is spawned (as sh_path does: the vertex that
         # sampled it evaluates its environment pdf only if it escapes); camera rays coherently.
-        hit = scene.ray_intersect_preliminary(ray, True, active)
+        hit = scene.ray_intersect_preliminary(ray, coherent=True, active=active)
 
         while dr.hint(active, max_iterations=self.max_depth, label=f"sh_prb ({mode.name})"):
             si = hit.compute_surface_interaction(ray, mi.RayFlags.All, active)
@@ -234,7 +234,7 @@ class SHPRBIntegrator(RBIntegrator):
             β = dr.select(rr_active, β * dr.rcp(rr_prob), β)
             active = active_next & (~rr_active | rr_continue) & (β_max != 0) & (bs.pdf > 0)
             depth += 1
-            hit = scene.ray_intersect_preliminary(ray, False, active)
+            hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
             prev_env_pdf = env.pdf(lobe, use_product, d, active & smooth & ~delta & ~hit.is_valid())
 
         return (L if primal else δL), valid_ray, [], L
