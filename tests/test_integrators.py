@@ -144,6 +144,26 @@ def test_product_depth_counts_vertices_from_the_camera_s_first_hit():
     assert not np.array_equal(render(4, 1), render(4, -1))
 
 
+def test_a_ray_traced_to_the_emitters_finds_the_area_light_the_sky_or_nothing():
+    from mitsuba_shsampling.integrators.estimators import trace_to_emitters
+
+    scene = mi.load_dict({
+        "type": "scene", "sky": sun_environment(rotated=False),
+        "light": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, 2]).scale(0.5),
+                  "flip_normals": True, "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}},
+        "wall": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([2, 0, 0]).rotate([0, 1, 0], -90),
+                 "bsdf": MATERIALS["diffuse"]},
+    })
+    # Up into the light, sideways into the (non-emitting) wall, down to the sky, and an inactive lane.
+    directions = mi.Vector3f([0, 1, 0, 0], [0, 0, 0, 1], [1, 0, -1, 0])
+    ray = mi.Ray3f(mi.Point3f(0.0), directions)
+    si, emitter, reached = trace_to_emitters(scene, ray, mi.Bool([True, True, True, False]))
+    assert reached.numpy().tolist() == [True, False, True, False]
+    radiance = emitter.eval(si, reached).numpy()
+    assert np.allclose(radiance[:, 0], 5.0) and np.all(radiance[:, 2] > 0)
+    assert np.all(radiance[:, [1, 3]] == 0)
+
+
 def test_scene_without_environment_builds_nothing_and_matches_direct():
     scene = make_scene(environment=False, area_light=True,
                        materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})

@@ -95,6 +95,24 @@ def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, lef
     return dr.select(act, bsdf_val * em_weight * weight, 0.0)
 
 
+def trace_to_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool):
+    """(interaction, emitter, lanes that reached one) of a ray traced to find the emitter it hits.
+
+    The surface interaction (normals, uv, partials, a call into the hit shape) is only
+    computed where the ray can have reached an emitter: where it escapes to the
+    environment, or hit a shape that emits (none is asked in a scene without area
+    emitters). Mitsuba's ``direct`` computes it for every BSDF sample; the result is the
+    same in the lanes that count (0 is returned elsewhere)."""
+    hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
+    reaches = mi.Bool(active) & ~hit.is_valid()
+    if any(mi.has_flag(e.flags(), mi.EmitterFlags.Surface) for e in scene.emitters()):
+        # (A null shape pointer, where nothing was hit, answers False.)
+        reaches |= mi.Bool(active) & hit.is_valid() & hit.shape.is_emitter()
+    si = hit.compute_surface_interaction(ray, mi.RayFlags.All, reaches)
+    emitter = si.emitter(scene, reaches)
+    return si, emitter, reaches & (emitter != None)  # noqa: E711
+
+
 def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
                             strategy_pdf: Callable, frac_e, frac_b, mitsuba_pdf: bool = True) -> mi.Spectrum:
     """One BSDF sample of the emitters it hits, MIS-weighted against the
@@ -111,9 +129,7 @@ def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
     bs, bsdf_weight = bsdf.sample(hit.ctx, si, sample_1, sample_2, active)
     act = active & (bs.pdf > 0)
     d = si.to_world(bs.wo)
-    si_b = scene.ray_intersect(si.spawn_ray(d), act)
-    emitter = si_b.emitter(scene, act)
-    act &= emitter != None  # noqa: E711 (per-lane pointer test)
+    si_b, emitter, act = trace_to_emitters(scene, si.spawn_ray(d), act)
     Le = emitter.eval(si_b, act)
     delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
     ds = mi.DirectionSample3f(scene, si_b, si)
@@ -137,7 +153,5 @@ def dirac_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2) -> mi.Spe
     act = hit.active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
     bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, act)
     act &= bs.pdf > 0
-    si_b = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), act)
-    emitter = si_b.emitter(scene, act)
-    act &= emitter != None  # noqa: E711 (per-lane pointer test)
+    si_b, emitter, act = trace_to_emitters(scene, si.spawn_ray(si.to_world(bs.wo)), act)
     return dr.select(act, bsdf_weight * emitter.eval(si_b, act), 0.0)
