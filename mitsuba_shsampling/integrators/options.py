@@ -232,6 +232,16 @@ class PathOptions(ProductOptions):
         "forest_slope the product at every vertex gave 1.53x ``path``'s efficiency, at the "
         "first hits only 1.64x (docs/MEASUREMENTS.md, \"The product at a path's first hits\")."))
 
+    @property
+    def depth_limit(self) -> int:
+        """``max_depth`` as the integrators' loop compares it with a vertex's depth (-1: no limit)."""
+        return self.max_depth if self.max_depth >= 0 else 0xFFFFFFFF
+
+    @property
+    def product_depth_limit(self) -> int:
+        """``product_depth`` as the loop compares it with a vertex's depth (-1: no limit)."""
+        return self.product_depth if self.product_depth >= 0 else 0xFFFFFFFF
+
     def _check_ranges(self) -> None:
         super()._check_ranges()
         if self.max_depth < -1:

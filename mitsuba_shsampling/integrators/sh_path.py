@@ -76,8 +76,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         if dr.hint(self.options.max_depth == 0, mode="scalar"):
             return mi.Spectrum(0.0), mi.Bool(False), []
         env = self.scenes.get(scene)
-        max_depth = self.options.max_depth if self.options.max_depth >= 0 else 0xFFFFFFFF
-        product_depth = self.options.product_depth if self.options.product_depth >= 0 else 0xFFFFFFFF
+        max_depth, product_depth = self.options.depth_limit, self.options.product_depth_limit
         ctx = mi.BSDFContext()
 
         # --------------------- Configure loop state ----------------------

@@ -79,8 +79,8 @@ class SHPRBIntegrator(RBIntegrator):
         options = PRBOptions.from_properties(props)
         super().__init__(props)
         self.options = options
-        self.max_depth = options.max_depth if options.max_depth >= 0 else 0xFFFFFFFF
-        self.product_depth = options.product_depth if options.product_depth >= 0 else 0xFFFFFFFF
+        self.max_depth = options.depth_limit
+        self.product_depth = options.product_depth_limit
         self.rr_depth = options.rr_depth
 
         def build(scene):
