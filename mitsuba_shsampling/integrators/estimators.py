@@ -113,6 +113,16 @@ def trace_to_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool):
     return si, emitter, reaches & (emitter != None)  # noqa: E711
 
 
+def mitsuba_hit_pdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, prev_si: mi.Interaction3f, active,
+                    needed: bool) -> mi.Float:
+    """Mitsuba's emitter-sampling pdf of the emitter that a ray from ``prev_si`` hit at ``si``;
+    0, and nothing traced, where it is not ``needed`` (the environment is this package's,
+    and no other emitter is sampled by Mitsuba)."""
+    if not needed:
+        return mi.Float(0.0)
+    return scene.pdf_emitter_direction(prev_si, mi.DirectionSample3f(scene, si, prev_si), active)
+
+
 def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
                             strategy_pdf: Callable, frac_e, frac_b, mitsuba_pdf: bool = True) -> mi.Spectrum:
     """One BSDF sample of the emitters it hits, MIS-weighted against the
@@ -132,8 +142,7 @@ def bsdf_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2,
     si_b, emitter, act = trace_to_emitters(scene, si.spawn_ray(d), act)
     Le = emitter.eval(si_b, act)
     delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-    ds = mi.DirectionSample3f(scene, si_b, si)
-    em_pdf = scene.pdf_emitter_direction(si, ds, act & ~delta) if mitsuba_pdf else mi.Float(0.0)
+    em_pdf = mitsuba_hit_pdf(scene, si_b, si, act & ~delta, mitsuba_pdf)
     pdf_em = strategy_pdf(emitter, d, act & ~delta, em_pdf)
     pdf_em = dr.select(delta | ~hit.smooth, 0.0, pdf_em)
     weight = mis_weight(bs.pdf * frac_b, pdf_em * frac_e)

@@ -7,7 +7,7 @@ import mitsuba as mi
 
 from .chooser import StrategyChooser
 from .environment import ProductEnvironment, SceneCache
-from .estimators import mis_weight
+from .estimators import mis_weight, mitsuba_hit_pdf
 from .options import PathOptions, document_parameters
 
 
@@ -92,6 +92,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         prev_bsdf_delta = mi.Bool(True)
         # Pdf of the current ray under the previous vertex's environment strategy.
         prev_env_pdf = mi.Float(0.0)
+        # Mitsuba's pdf of a hit emitter is only read where Mitsuba samples some emitter.
+        mitsuba_pdf = env.needs_emitter_sampling or not env.active
         # Each ray is intersected where it is spawned (the camera rays here, coherently, as
         # Mitsuba's path traces them), so that the vertex that sampled it knows whether it
         # escapes before it evaluates its environment pdf; the loop carries the preliminary hit.
@@ -102,9 +104,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
 
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
             emitter = si.emitter(scene, active)
-            ds = mi.DirectionSample3f(scene, si, prev_si)
-            em_pdf = env.hit_pdf(emitter, prev_env_pdf,
-                                 scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta))
+            em_pdf = env.hit_pdf(emitter, prev_env_pdf, mitsuba_hit_pdf(scene, si, prev_si, active & ~prev_bsdf_delta,
+                                                                         mitsuba_pdf))
             em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
             visible = active & ((depth > 0) | (not self.options.hide_emitters))
             L += dr.select(visible, beta * mis_weight(prev_bsdf_pdf, em_pdf) * emitter.eval(si, visible), 0.0)

@@ -7,7 +7,7 @@ import mitsuba as mi
 
 from .chooser import StrategyChooser
 from .environment import ProductEnvironment, SceneCache
-from .estimators import environment_ray_target, mis_weight
+from .estimators import environment_ray_target, mis_weight, mitsuba_hit_pdf
 from .options import PRBOptions, document_parameters
 
 # Mitsuba's base of the replay integrators (primal pass, then the same paths again with adjoint
@@ -161,6 +161,8 @@ class SHPRBIntegrator(RBIntegrator):
         prev_bsdf_delta = mi.Bool(True)
         # Pdf of the current ray under the previous vertex's environment strategy.
         prev_env_pdf = mi.Float(0.0)
+        # Mitsuba's pdf of a hit emitter is only read where Mitsuba samples some emitter.
+        mitsuba_pdf = env.needs_emitter_sampling or not env.active
         # Each ray is intersected where it is spawned (as sh_path does: the vertex that
         # sampled it evaluates its environment pdf only if it escapes); camera rays coherently.
         hit = scene.ray_intersect_preliminary(ray, coherent=True, active=active)
@@ -171,9 +173,8 @@ class SHPRBIntegrator(RBIntegrator):
 
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
             emitter = si.emitter(scene, active)
-            ds = mi.DirectionSample3f(scene, si, prev_si)
-            em_pdf = env.hit_pdf(emitter, prev_env_pdf,
-                                 scene.pdf_emitter_direction(prev_si, ds, active & ~prev_bsdf_delta))
+            em_pdf = env.hit_pdf(emitter, prev_env_pdf, mitsuba_hit_pdf(scene, si, prev_si, active & ~prev_bsdf_delta,
+                                                                         mitsuba_pdf))
             em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
             visible = active & ((depth > 0) | (not hide_emitters))
             with dr.resume_grad(when=not primal):
