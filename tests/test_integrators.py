@@ -148,23 +148,30 @@ def test_product_depth_counts_vertices_from_the_camera_s_first_hit():
     assert not np.array_equal(render(4, 1), render(4, -1))
 
 
-def test_a_ray_traced_to_the_emitters_finds_the_area_light_the_sky_or_nothing():
-    from mitsuba_shsampling.integrators.estimators import trace_to_emitters
+@pytest.mark.parametrize("area_light", [True, False])
+def test_a_ray_traced_to_the_emitters_finds_the_area_light_the_sky_or_nothing(area_light):
+    # Without an emitting shape the search is an occlusion query: the same answers.
+    from mitsuba_shsampling.integrators.estimators import environment_ray_target, trace_to_emitters
 
+    light = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, 2]).scale(0.5),
+             "flip_normals": True}
+    if area_light:
+        light["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}
     scene = mi.load_dict({
-        "type": "scene", "sky": sun_environment(rotated=False),
-        "light": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, 2]).scale(0.5),
-                  "flip_normals": True, "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5.0}}},
+        "type": "scene", "sky": sun_environment(rotated=False), "light": light,
         "wall": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([2, 0, 0]).rotate([0, 1, 0], -90),
                  "bsdf": MATERIALS["diffuse"]},
     })
-    # Up into the light, sideways into the (non-emitting) wall, down to the sky, and an inactive lane.
+    # Up into the light (or the same rectangle, not emitting), sideways into the wall, down to
+    # the sky, and an inactive lane.
     directions = mi.Vector3f([0, 1, 0, 0], [0, 0, 0, 1], [1, 0, -1, 0])
     ray = mi.Ray3f(mi.Point3f(0.0), directions)
     si, emitter, reached = trace_to_emitters(scene, ray, mi.Bool([True, True, True, False]))
-    assert reached.numpy().tolist() == [True, False, True, False]
+    assert reached.numpy().tolist() == [area_light, False, True, False]
     radiance = emitter.eval(si, reached).numpy()
-    assert np.allclose(radiance[:, 0], 5.0) and np.all(radiance[:, 2] > 0)
+    sky = scene.environment().eval(environment_ray_target(mi.Vector3f(0, 0, -1))).numpy()
+    assert np.all(sky > 0) and np.allclose(radiance[:, 2], sky[:, 0])
+    assert np.allclose(radiance[:, 0], 5.0) if area_light else np.all(radiance[:, 0] == 0)
     assert np.all(radiance[:, [1, 3]] == 0)
 
 

@@ -102,12 +102,19 @@ def trace_to_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool):
     computed where the ray can have reached an emitter: where it escapes to the
     environment, or hit a shape that emits (none is asked in a scene without area
     emitters). Mitsuba's ``direct`` computes it for every BSDF sample; the result is the
-    same in the lanes that count (0 is returned elsewhere)."""
-    hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
-    reaches = mi.Bool(active) & ~hit.is_valid()
+    same in the lanes that count (0 is returned elsewhere).
+
+    Without emitting shapes only a ray that escapes reaches an emitter, and which shape
+    stops the others does not matter: an occlusion query (``ray_test``, which may stop at
+    any hit) replaces the closest-hit search."""
     if any(mi.has_flag(e.flags(), mi.EmitterFlags.Surface) for e in scene.emitters()):
+        hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
         # (A null shape pointer, where nothing was hit, answers False.)
-        reaches |= mi.Bool(active) & hit.is_valid() & hit.shape.is_emitter()
+        reaches = mi.Bool(active) & (~hit.is_valid() | hit.shape.is_emitter())
+    else:
+        hit = dr.zeros(mi.PreliminaryIntersection3f)
+        hit.t = mi.Float(dr.inf)  # a miss: its interaction is the escaped ray's
+        reaches = mi.Bool(active) & ~scene.ray_test(ray, active)
     si = hit.compute_surface_interaction(ray, mi.RayFlags.All, reaches)
     emitter = si.emitter(scene, reaches)
     return si, emitter, reaches & (emitter != None)  # noqa: E711
