@@ -95,6 +95,12 @@ def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, lef
     return dr.select(act, bsdf_val * em_weight * weight, 0.0)
 
 
+def has_emitting_shapes(scene: mi.Scene) -> bool:
+    """Some shape of ``scene`` emits (an ``area`` emitter): a ray can then reach an
+    emitter without escaping to the environment."""
+    return any(mi.has_flag(e.flags(), mi.EmitterFlags.Surface) for e in scene.emitters())
+
+
 def trace_to_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool):
     """(interaction, emitter, lanes that reached one) of a ray traced to find the emitter it hits.
 
@@ -107,7 +113,7 @@ def trace_to_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool):
     Without emitting shapes only a ray that escapes reaches an emitter, and which shape
     stops the others does not matter: an occlusion query (``ray_test``, which may stop at
     any hit) replaces the closest-hit search."""
-    if any(mi.has_flag(e.flags(), mi.EmitterFlags.Surface) for e in scene.emitters()):
+    if has_emitting_shapes(scene):
         hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
         # (A null shape pointer, where nothing was hit, answers False.)
         reaches = mi.Bool(active) & (~hit.is_valid() | hit.shape.is_emitter())

@@ -7,7 +7,7 @@ import mitsuba as mi
 
 from .chooser import StrategyChooser
 from .environment import ProductEnvironment, SceneCache
-from .estimators import mis_weight, mitsuba_hit_pdf
+from .estimators import has_emitting_shapes, mis_weight, mitsuba_hit_pdf
 from .options import PathOptions, document_parameters
 
 
@@ -94,6 +94,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         prev_env_pdf = mi.Float(0.0)
         # Mitsuba's pdf of a hit emitter is only read where Mitsuba samples some emitter.
         mitsuba_pdf = env.needs_emitter_sampling or not env.active
+        occlusion_ends_paths = not has_emitting_shapes(scene)
         # Each ray is intersected where it is spawned (the camera rays here, coherently, as
         # Mitsuba's path traces them), so that the vertex that sampled it knows whether it
         # escapes before it evaluates its environment pdf; the loop carries the preliminary hit.
@@ -150,7 +151,16 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             # environment: the product's pdf walk (about a fifth of a direct pass's
             # operations) is skipped for rays that hit the scene, in every packet
             # where no lane escapes (walls, floors, the inside of a room).
-            hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
+            #
+            # A ray to the path's last vertex, where nothing is sampled, counts only if it reaches
+            # an emitter: without emitting shapes, only if it escapes. An occlusion query (which
+            # may stop at any hit) answers that; the lanes it stops end, the others see a miss.
+            if dr.hint(occlusion_ends_paths, mode="scalar"):
+                last = depth + 1 >= max_depth
+                hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active & ~last)
+                active &= ~scene.ray_test(ray, active & last)
+            else:
+                hit = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
             prev_env_pdf = env.pdf(lobe, use_product, d, active & smooth & ~delta & ~hit.is_valid())
 
         return L, valid_ray, []
