@@ -175,6 +175,17 @@ def test_a_ray_traced_to_the_emitters_finds_the_area_light_the_sky_or_nothing(ar
     assert np.all(radiance[:, [1, 3]] == 0)
 
 
+def test_a_scene_lit_by_a_point_light_alone_renders_what_direct_renders():
+    # No environment and no emitting shape: a BSDF sample reaches nothing.
+    scene = make_scene(environment=False, materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})
+    params = {"type": "scene", "sensor": scene.sensors()[0], "point": {"type": "point", "position": [1.0, -2.0, 2.5],
+                                                                      "intensity": {"type": "rgb", "value": 20.0}}}
+    for i, shape in enumerate(scene.shapes()):
+        params[f"shape_{i}"] = shape
+    scene = mi.load_dict(params)
+    assert_unbiased(scene, mi.load_dict({"type": "sh_direct"}), mi.load_dict({"type": "direct"}))
+
+
 def test_scene_without_environment_builds_nothing_and_matches_direct():
     scene = make_scene(environment=False, area_light=True,
                        materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})
