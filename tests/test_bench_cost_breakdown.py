@@ -31,8 +31,13 @@ def test_every_stage_and_pass_is_measured_and_the_product_pass_has_the_most_oper
     rows = {(row["kind"], row["key"]): row for row in report["rows"]}
     for key in STAGES:
         row = rows[("stage", key)]
-        assert row["kernel_ops"] > 0 and row["ms_per_2p20_lanes"] >= 0, key
+        assert row["kernel_ops"] > 0, key
         assert row["kernels"] == (0 if key == "proxy_levels" else 1), key  # a difference, or one kernel
+        if row["kernels"]:
+            assert row["ms_per_2p20_lanes"] >= 0, key
+        else:  # the difference of two timed stages: at this tiny size their noise can make it negative
+            whole, part = (rows[("stage", k)] for k in row["difference_of"])
+            assert row["execution_ms"] == whole["execution_ms"] - part["execution_ms"], key
     for key in PASSES:
         assert rows[("pass", key)]["lanes"] == report["camera_samples"] == 24 * 24
     for key in PASSES:  # each pass is also timed replayed from a dr.freeze recording
