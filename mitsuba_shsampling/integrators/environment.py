@@ -56,7 +56,8 @@ class ProductEnvironment:
     ``strategies`` (:class:`StrategyTable`: each material's strategy),
     ``choice`` (the chooser's :class:`~.chooser.StrategyChoice` once made),
     ``needs_emitter_sampling`` (bool: Mitsuba's emitter sampling has work to do:
-    emitters besides the environment), ``has_dirac_materials`` (bool).
+    emitters besides the environment, or any emitter where this object is inactive; so
+    also whether Mitsuba's pdf of a hit emitter is needed), ``has_dirac_materials`` (bool).
     """
 
     def __init__(self, scene: mi.Scene, options: ProductOptions, carry_all: bool = False):

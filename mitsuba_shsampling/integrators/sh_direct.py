@@ -112,15 +112,13 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             act = act & env.is_environment(emitter) if env.active else act
             return env.hit_pdf(emitter, env.pdf(lobe, use_product, d, act), mitsuba_pdf)
 
-        # Mitsuba's pdf of a hit emitter is only needed where Mitsuba samples some emitter.
-        mitsuba_pdf = env.needs_emitter_sampling or not env.active
 
         # ------- BSDF sampling (a further strategy sample where the strategy carries all) -------
         for _ in range(n_b):
             sample_1, sample_2 = sampler.next_1d(hit.active), sampler.next_2d(hit.active)
             if carries_all is False:  # no such lane: not even a branch is traced
                 L += bsdf_sample_of_emitters(scene, hit, sample_1, sample_2, strategy_pdf, frac_e, frac_b,
-                                             mitsuba_pdf) / n_b
+                                             env.needs_emitter_sampling) / n_b
                 continue
             L += dr.if_stmt(
                 args=(sample_1, sample_2), cond=carries_all,
@@ -128,7 +126,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product, smooth,
                                                      True, frac_b, frac_e) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
-                                                                frac_e, frac_b, mitsuba_pdf) / n_b)
+                                                                frac_e, frac_b, env.needs_emitter_sampling) / n_b)
 
         # Without BSDF samples nothing else reaches a Dirac component (Mitsuba's direct then
         # leaves it black): one sample of those components alone, where the scene has any.

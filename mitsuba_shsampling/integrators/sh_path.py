@@ -92,8 +92,6 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         prev_bsdf_delta = mi.Bool(True)
         # Pdf of the current ray under the previous vertex's environment strategy.
         prev_env_pdf = mi.Float(0.0)
-        # Mitsuba's pdf of a hit emitter is only read where Mitsuba samples some emitter.
-        mitsuba_pdf = env.needs_emitter_sampling or not env.active
         occlusion_ends_paths = not has_emitting_shapes(scene)
         # Each ray is intersected where it is spawned (the camera rays here, coherently, as
         # Mitsuba's path traces them), so that the vertex that sampled it knows whether it
@@ -105,8 +103,9 @@ class SHPathIntegrator(mi.SamplingIntegrator):
 
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
             emitter = si.emitter(scene, active)
-            em_pdf = env.hit_pdf(emitter, prev_env_pdf, mitsuba_hit_pdf(scene, si, prev_si, active & ~prev_bsdf_delta,
-                                                                         mitsuba_pdf))
+            # (Mitsuba's pdf only where Mitsuba samples some emitter.)
+            em_pdf = env.hit_pdf(emitter, prev_env_pdf, mitsuba_hit_pdf(
+                scene, si, prev_si, active & ~prev_bsdf_delta, env.needs_emitter_sampling))
             em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
             visible = active & ((depth > 0) | (not self.options.hide_emitters))
             L += dr.select(visible, beta * mis_weight(prev_bsdf_pdf, em_pdf) * emitter.eval(si, visible), 0.0)

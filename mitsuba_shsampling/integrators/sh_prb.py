@@ -161,8 +161,6 @@ class SHPRBIntegrator(RBIntegrator):
         prev_bsdf_delta = mi.Bool(True)
         # Pdf of the current ray under the previous vertex's environment strategy.
         prev_env_pdf = mi.Float(0.0)
-        # Mitsuba's pdf of a hit emitter is only read where Mitsuba samples some emitter.
-        mitsuba_pdf = env.needs_emitter_sampling or not env.active
         # Each ray is intersected where it is spawned (as sh_path does: the vertex that
         # sampled it evaluates its environment pdf only if it escapes); camera rays coherently.
         hit = scene.ray_intersect_preliminary(ray, coherent=True, active=active)
@@ -173,8 +171,9 @@ class SHPRBIntegrator(RBIntegrator):
 
             # ---------------- Emitter hit by the BSDF-sampled ray ----------------
             emitter = si.emitter(scene, active)
-            em_pdf = env.hit_pdf(emitter, prev_env_pdf, mitsuba_hit_pdf(scene, si, prev_si, active & ~prev_bsdf_delta,
-                                                                         mitsuba_pdf))
+            # (Mitsuba's pdf only where Mitsuba samples some emitter.)
+            em_pdf = env.hit_pdf(emitter, prev_env_pdf, mitsuba_hit_pdf(
+                scene, si, prev_si, active & ~prev_bsdf_delta, env.needs_emitter_sampling))
             em_pdf = dr.select(prev_bsdf_delta, 0.0, em_pdf)
             visible = active & ((depth > 0) | (not hide_emitters))
             with dr.resume_grad(when=not primal):
