@@ -145,6 +145,45 @@ def test_a_lobe_sampled_from_the_cheap_cosine_tables_takes_the_product_where_the
     assert error == pytest.approx((3.0 + 0.8) * (1.0 + 0.2 * 0.4 + 0.8 * 0.05))
 
 
+def test_environment_only_is_chosen_where_its_measured_time_pays_and_not_elsewhere():
+    """Under a lone disk light on black, two map samples halve the diffuse floor's variance
+    against one map sample and one BSDF sample. environment_only does not cost what
+    environment costs (a second map sample and shadow ray instead of the BSDF sample's
+    occlusion query: 4-25 % of a pass measured), so its pilot's time decides: it is kept
+    when it costs a little more, dropped when it costs three times the pass."""
+    disk = envmap_emitter(sun_sky_latlong(128, 256, sun_direction=(0.3, 0.8, 0.5), sun_radius_deg=12.0,
+                                          sun_radiance=50.0, sky_radiance=0.0))
+    scene = floor_scene({"type": "diffuse"}, disk)
+    products_never_pay = {P.label: 50.0, PO.label: 50.0}
+
+    def lean_choice(environment_only_time):
+        env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+        pilots = Pilots({**PASS_TIME, **products_never_pay, EO.label: environment_only_time})
+        choice = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=pilots)
+        assert choice.lean
+        (material,) = choice.materials
+        assert material.variance[EO] < 0.6 * material.variance[E]
+        return material.strategy
+
+    assert lean_choice(1.3) == EO
+    assert lean_choice(3.0) == E
+
+
+def test_a_pilot_runs_environment_only_where_the_quadrature_prefers_it():
+    """The same floor with no pilots given: one pilot pass puts it on environment_only,
+    and that pilot's time enters the choice."""
+    disk = envmap_emitter(sun_sky_latlong(128, 256, sun_direction=(0.3, 0.8, 0.5), sun_radius_deg=12.0,
+                                          sun_radiance=50.0, sky_radiance=0.0))
+    scene = floor_scene({"type": "diffuse"}, disk)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    (key,) = env.strategies.ids
+    ran = []
+    choice = choose_strategies(env, scene.sensors()[0], 1, 1,
+                               render_pass=lambda spp, seed: ran.append(env.strategies.of(key)))
+    assert EO in ran
+    assert EO.label in choice.pass_time
+
+
 def test_materials_where_nothing_pays_leave_the_product_out_of_the_kernel():
     scene = floor_scene({"type": "diffuse"}, SUN)
     env = ProductEnvironment(scene, DirectOptions(), carry_all=True)

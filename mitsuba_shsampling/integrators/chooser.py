@@ -522,8 +522,9 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     ``render_pass(spp, seed)`` renders one pass of the integrator as it is
     configured and returns its image; ``pilots`` (as an earlier choice measured
     them) skips the pilot passes. Pilots without images leave the shared
-    variance ``S`` at 0. Without a product to choose, no pilot runs: the
-    environment strategies cost the same.
+    variance ``S`` at 0. Without a product to choose, pilots run only where the
+    quadrature prefers ``environment_only`` for some material: its time decides
+    whether that pays (it costs more than ``environment``).
     """
     start = time.perf_counter()
     table = env.strategies
@@ -545,7 +546,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     rest_rows = variances[~np.isin(keys, materials)]
     rest = float(np.sum(rest_rows[:, Strategy.ENVIRONMENT])) / total if len(rest_rows) else 0.0
 
-    # The lean kernel: the environment strategies only, which cost the same.
+    # The lean kernel: the environment strategies only, no product code.
     cheap = (Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY)
 
     def best_environment_strategies(variance):
@@ -553,14 +554,23 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
 
     lean_choice = best_environment_strategies(variance)
     product_possible = any(s.uses_product for k in materials for s in allowed[k])
+    # The two environment strategies do not cost the same: environment_only draws a second
+    # map sample and traces a second shadow ray where the other traces the BSDF sample's
+    # occlusion query, 4-25 % of a pass (docs/MEASUREMENTS.md, "environment_only's time").
+    # Where the quadrature prefers it for some material, a pilot measures what it costs.
+    alone_capable = [k for k in materials if Strategy.ENVIRONMENT_ONLY in allowed[k]]
+    alone_wanted = any(s == Strategy.ENVIRONMENT_ONLY for s in lean_choice.values())
 
     choice, lean, gain, shared, fit = lean_choice, True, 1.0, 0.0, {}
-    if product_possible:
+    if product_possible or alone_wanted:
         # Cosine lobes take the product from tables, at a fraction of the SH walk's cost: where
         # both kinds could run a product strategy, a pilot with the cosine lobes alone on it
         # tells the two costs apart.
         cosine = {k for k in materials if env.samples_from_cosine_table(k)}
         candidates = {LEAN: LEAN, Strategy.ENVIRONMENT.label: {k: Strategy.ENVIRONMENT for k in materials}}
+        if alone_wanted:
+            candidates[Strategy.ENVIRONMENT_ONLY.label] = {
+                k: Strategy.ENVIRONMENT_ONLY if k in alone_capable else Strategy.ENVIRONMENT for k in materials}
         for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
             capable = [k for k in materials if strategy in allowed[k]]
             if capable:
@@ -584,33 +594,45 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         fit = {name: (model[name] + shared, measured[name]) for name in measured}
         variance = {k: {s: v * pilots.calibration.get(s, 1.0) for s, v in row.items()} for k, row in variance.items()}
         rest *= pilots.calibration.get(Strategy.ENVIRONMENT, 1.0)
-        lean_choice = best_environment_strategies(variance)  # with the calibrated variances
 
         pass_time = pilots.pass_time
         base = pass_time[Strategy.ENVIRONMENT.label]
         extra = {k: {s: 0.0 for s in cheap} for k in materials}
-        for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
-            if strategy.label not in pass_time:
-                continue
-            capable = [k for k in materials if strategy in allowed[k]]
-            # Extra pass time per unit of film share, per kind of lobe where a pilot told
-            # the kinds apart, else one figure for all.
-            kinds = [capable]
-            times = [base, pass_time[strategy.label]]
-            if cosine_pilot(strategy) in pass_time:
-                kinds = [[k for k in capable if k in cosine], [k for k in capable if k not in cosine]]
-                times = [base, pass_time[cosine_pilot(strategy)], pass_time[strategy.label]]
+
+        def set_extra(strategy, kinds, times):
+            # Extra pass time per unit of film share of the materials of each kind switched to
+            # ``strategy`` (the pilots' times: before, then with each kind added in turn).
             for kind, before, after in zip(kinds, times, times[1:]):
                 switched = sum(share[k] for k in kind)
                 per_share = max(after - before, 0.0) / switched if switched > 0 else 0.0
                 for k in kind:
                     extra[k][strategy] = per_share
+
+        if Strategy.ENVIRONMENT_ONLY.label in pass_time:  # else (pilots of an earlier choice) as before: no extra
+            set_extra(Strategy.ENVIRONMENT_ONLY, [alone_capable], [base, pass_time[Strategy.ENVIRONMENT_ONLY.label]])
+        for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
+            if strategy.label not in pass_time:
+                continue
+            capable = [k for k in materials if strategy in allowed[k]]
+            # Per kind of lobe where a pilot told the kinds apart, else one figure for all.
+            if cosine_pilot(strategy) in pass_time:
+                set_extra(strategy, [[k for k in capable if k in cosine], [k for k in capable if k not in cosine]],
+                          [base, pass_time[cosine_pilot(strategy)], pass_time[strategy.label]])
+            else:
+                set_extra(strategy, [capable], [base, pass_time[strategy.label]])
         # Materials no camera ray sees give no evidence: they keep their lean choice.
         seen = {k: v for k, v in variance.items() if share[k] > 0}
-        full_choice, error_full = minimise_error_at_equal_time(seen, rest + shared, share, base, extra)
-        error_lean = (rest + shared + sum(variance[k][s] for k, s in lean_choice.items())) * pass_time[LEAN]
-        if error_full * REQUIRED_GAIN < error_lean and any(s.uses_product for s in full_choice.values()):
-            choice, lean, gain = {**lean_choice, **full_choice}, False, error_lean / error_full
+        # The lean kernel's choice, calibrated and timed: environment_only only where it pays.
+        seen_cheap = {k: {s: v for s, v in row.items() if s in cheap} for k, row in seen.items()}
+        lean_seen, _ = minimise_error_at_equal_time(seen_cheap, rest + shared, share, pass_time[LEAN], extra)
+        lean_choice = {**best_environment_strategies(variance), **lean_seen}
+        error_lean = ((rest + shared + sum(variance[k][s] for k, s in lean_choice.items()))
+                      * (pass_time[LEAN] + sum(share[k] * extra[k][s] for k, s in lean_choice.items())))
+        choice = lean_choice
+        if product_possible:
+            full_choice, error_full = minimise_error_at_equal_time(seen, rest + shared, share, base, extra)
+            if error_full * REQUIRED_GAIN < error_lean and any(s.uses_product for s in full_choice.values()):
+                choice, lean, gain = {**lean_choice, **full_choice}, False, error_lean / error_full
     table.assign(choice)
     if lean and env.warp is not None:
         env.drop_product()
