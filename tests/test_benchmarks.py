@@ -86,3 +86,16 @@ def test_the_interleaved_ab_script_reports_variance_time_and_efficiency_against_
     assert second["efficiency_ratio"] == pytest.approx(1.0 / (second["variance_ratio"] * second["time_ratio"]))
     # BSDF sampling alone rarely finds the map's sun: far noisier than 1 + 1 MIS.
     assert second["pixel_variance"] > first["pixel_variance"]
+
+
+def test_the_product_benchmark_times_the_warp_with_its_lobes_from_memory_and_built_in_the_kernel(tmp_path):
+    """Both against Mitsuba's own envmap sampler in the same run: the benchmark's lanes read
+    their n^2 coefficients from memory, an integrator's build them from a lobe axis."""
+    from mitsuba_shsampling.benchmarks import product
+    from mitsuba_shsampling.envmap.synthetic import sun_sky_latlong
+    path = str(tmp_path / "sun.exr")
+    mi.Bitmap(sun_sky_latlong(32, 64, sun_radius_deg=5.0)).write(path)
+    (row,) = product.run(quick=True, envmaps=[path], bands=[3], lanes=1 << 12, repeats=1)
+    for key in ("ratio_to_mitsuba", "lobe_in_kernel_ratio_to_mitsuba", "msamples_per_s",
+                "lobe_in_kernel_msamples_per_s"):
+        assert 0.0 < row[key] < float("inf"), key
