@@ -20,7 +20,7 @@ from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong,
 from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.chooser import (LEAN, Pilots, camera_frames, choose_strategies,  # noqa: E402
                                                     cosine_pilot, film_variance_factor, frame_variances,
-                                                    minimise_error_at_equal_time)
+                                                    confirm_by_timing, minimise_error_at_equal_time)
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
 from mitsuba_shsampling.integrators.strategy import Strategy  # noqa: E402
@@ -129,6 +129,30 @@ def test_the_coordinate_descent_pays_for_time_only_where_the_variance_drops_enou
     choice, error = minimise_error_at_equal_time(variance, 0.0, share, base_time=1.0, extra_time=extra_time)
     assert choice == {"big_glossy": P, "small_diffuse": E}
     assert error == pytest.approx((3.0 + 1.0) * (1.0 + 0.2))
+
+
+def test_a_near_tie_is_settled_by_timing_the_rival_assignments_as_wholes():
+    """The per-material times are differences of pilot times; where the model puts two
+    assignments within a few per cent, both are timed whole and the measured time decides."""
+    variance = {"glossy": {E: 4.0, P: 1.0, PO: 1.02}, "ground": {E: 1.0, P: 0.9}}
+    share = {"glossy": 0.2, "ground": 0.8}
+    extra = {"glossy": {E: 0.0, P: 0.5, PO: 0.25}, "ground": {E: 0.0, P: 1.0}}
+    best, _ = minimise_error_at_equal_time(variance, 0.0, share, base_time=1.0, extra_time=extra)
+    assert best == {"glossy": PO, "ground": E}  # the model's pick: the cheaper per-share time
+    timed = []
+
+    def time_assignments(assignments):
+        timed.append(assignments)
+        return {name: 1.25 if a["glossy"] == PO else 1.1 for name, a in assignments.items()}
+
+    confirmed = confirm_by_timing(best, variance, 0.0, share, 1.0, extra, time_assignments)
+    assert confirmed == {"glossy": P, "ground": E}
+    (assignments,) = timed
+    assert list(assignments.values())[0] == best and {"glossy": P, "ground": E} in assignments.values()
+    # A clear winner is not timed again.
+    far = {"glossy": {E: 4.0, P: 1.0, PO: 3.0}, "ground": {E: 1.0, P: 0.95}}
+    best, _ = minimise_error_at_equal_time(far, 0.0, share, base_time=1.0, extra_time=extra)
+    assert confirm_by_timing(best, far, 0.0, share, 1.0, extra, lambda a: pytest.fail("timed")) == best
 
 
 def test_a_lobe_sampled_from_the_cheap_cosine_tables_takes_the_product_where_the_sh_walk_would_not_pay():

@@ -35,7 +35,10 @@ with
 - ``a_m``: the share of the film's pixels that material ``m`` covers.
 
 J is minimised by coordinate descent over the materials (a handful of
-strategies, a few sweeps). What is predicted is direct lighting at the
+strategies, a few sweeps). Where another assignment (one material's strategy changed)
+is predicted within :data:`CONFIRM_MARGIN` of the best, the close ones are timed
+as wholes by further pilots and their measured times decide
+(:func:`confirm_by_timing`). What is predicted is direct lighting at the
 camera's first hits; in a path tracer the deeper vertices share the choice.
 """
 
@@ -81,6 +84,15 @@ times and images: on the realistic scenes the measured gain was 0.85-1.15x the
 predicted one where no rare path decided it, and the default job measured 0.78
 where 1.09 was predicted (1.05 was the bar then)."""
 
+CONFIRM_MARGIN = 1.15
+"""Assignments predicted within this factor of the best one's error at equal time are
+timed as wholes before the choice (:func:`confirm_by_timing`): the per-material times
+are differences of pilot times, and where a material's share of the pass is small
+their noise can flip a near tie."""
+
+CONFIRM_RIVALS = 3
+"""At most this many rivals (one material's strategy changed each) are timed."""
+
 
 @dataclasses.dataclass
 class MaterialChoice:
@@ -107,7 +119,8 @@ class StrategyChoice:
     materials: list
     pass_time: dict
     """Pilot -> pass time (s): each strategy with every material that can run it on it,
-    and :data:`LEAN`, the kernel without product code."""
+    and :data:`LEAN`, the kernel without product code; ``confirm 0`` (the model's pick)
+    and ``confirm 1`` ... (its close rivals) where :func:`confirm_by_timing` ran."""
     predicted_gain: float
     """Predicted equal-time efficiency of the choice over the lean kernel (every
     material on its best environment strategy, no product code: Mitsuba's
@@ -461,6 +474,44 @@ def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, var
 
 # ----------------------------------------------------------------- the choice
 
+def predicted_error(choice: dict, variance: dict, rest: float, share: dict, base_time: float,
+                    extra_time: dict) -> float:
+    """(rest + sum V) x (base + sum share x extra) of one assignment (see
+    :func:`minimise_error_at_equal_time` for the arguments)."""
+    v = rest + sum(variance[m][s] for m, s in choice.items())
+    t = base_time + sum(share[m] * extra_time[m][s] for m, s in choice.items())
+    return v * t
+
+
+def confirm_by_timing(best: dict, variance: dict, rest: float, share: dict, base_time: float,
+                      extra_time: dict, time_assignments: Callable[[dict], dict]) -> dict:
+    """The assignment of least error at equal time among ``best`` and its close rivals, with
+    each one's pass time measured as a whole.
+
+    Rivals change one material's strategy; those predicted within :data:`CONFIRM_MARGIN`
+    of ``best`` (at most :data:`CONFIRM_RIVALS`, the closest) are timed together with it by
+    ``time_assignments(name -> assignment)`` (returning name -> pass time), and the error
+    is their variance (the model's) times that time. Without a close rival nothing runs."""
+    limit = CONFIRM_MARGIN * predicted_error(best, variance, rest, share, base_time, extra_time)
+    rivals = []
+    for m, chosen in best.items():
+        for s in variance[m]:
+            if s == chosen or s not in extra_time[m] or not np.isfinite(variance[m][s]):
+                continue
+            rival = {**best, m: s}
+            error = predicted_error(rival, variance, rest, share, base_time, extra_time)
+            if error <= limit:
+                rivals.append((error, rival))
+    if not rivals:
+        return best
+    rivals = [rival for _, rival in sorted(rivals, key=lambda r: r[0])[:CONFIRM_RIVALS]]
+    assignments = {f"confirm {i}": a for i, a in enumerate([best] + rivals)}
+    times = time_assignments(assignments)
+    errors = {name: (rest + sum(variance[m][s] for m, s in a.items())) * times[name]
+              for name, a in assignments.items()}
+    return assignments[min(errors, key=errors.get)]
+
+
 def minimise_error_at_equal_time(variance: dict, rest: float, share: dict, base_time: float,
                                  extra_time: dict, sweeps: int = 8) -> dict:
     """Strategy per material minimising (rest + sum V) x (base + sum share x extra).
@@ -473,9 +524,7 @@ def minimise_error_at_equal_time(variance: dict, rest: float, share: dict, base_
     choice = {m: Strategy.ENVIRONMENT for m in variance}
 
     def cost(choice):
-        v = rest + sum(variance[m][s] for m, s in choice.items())
-        t = base_time + sum(share[m] * extra_time[m][s] for m, s in choice.items())
-        return v * t
+        return predicted_error(choice, variance, rest, share, base_time, extra_time)
 
     for _ in range(sweeps):
         changed = False
@@ -561,7 +610,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     alone_capable = [k for k in materials if Strategy.ENVIRONMENT_ONLY in allowed[k]]
     alone_wanted = any(s == Strategy.ENVIRONMENT_ONLY for s in lean_choice.values())
 
-    choice, lean, gain, shared, fit = lean_choice, True, 1.0, 0.0, {}
+    choice, lean, gain, shared, fit, confirmed = lean_choice, True, 1.0, 0.0, {}, {}
     if product_possible or alone_wanted:
         # Cosine lobes take the product from tables, at a fraction of the SH walk's cost: where
         # both kinds could run a product strategy, a pilot with the cosine lobes alone on it
@@ -579,7 +628,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
             if any(k in cosine for k in capable) and any(k not in cosine for k in capable):
                 candidates[cosine_pilot(strategy)] = {k: strategy if k in capable and k in cosine
                                                       else Strategy.ENVIRONMENT for k in materials}
-        if pilots is None:
+        fresh = pilots is None  # (pilots of an earlier choice: the scene's parameters changed)
+        if fresh:
             film = sensor.film().crop_size()
             spp = max(1, math.ceil(PILOT_LANES / (int(film[0]) * int(film[1]))))
             pilots = measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp)
@@ -629,8 +679,19 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         error_lean = ((rest + shared + sum(variance[k][s] for k, s in lean_choice.items()))
                       * (pass_time[LEAN] + sum(share[k] * extra[k][s] for k, s in lean_choice.items())))
         choice = lean_choice
+        confirmed = {}
         if product_possible:
             full_choice, error_full = minimise_error_at_equal_time(seen, rest + shared, share, base, extra)
+            if fresh:
+                def time_assignments(assignments):
+                    whole = {name: {**lean_choice, **a} for name, a in assignments.items()}
+                    times = measure_pass_costs(env, whole, lambda seed: render_pass(spp, seed), spp=spp).pass_time
+                    confirmed.update(times)  # reported with the pilots' times
+                    return times
+
+                full_choice = confirm_by_timing(full_choice, seen, rest + shared, share, base, extra,
+                                                time_assignments)
+                error_full = predicted_error(full_choice, seen, rest + shared, share, base, extra)
             if error_full * REQUIRED_GAIN < error_lean and any(s.uses_product for s in full_choice.values()):
                 choice, lean, gain = {**lean_choice, **full_choice}, False, error_lean / error_full
     table.assign(choice)
@@ -645,7 +706,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         reference = v[lean_choice[key]]
         report.append(MaterialChoice(env.material_name(key), s, share[key], dict(v),
                                      reference / v[s] if v[s] > 0 else 1.0))
-    return StrategyChoice(report, dict(pilots.pass_time) if pilots else {}, gain, lean,
+    return StrategyChoice(report, {**(pilots.pass_time if pilots else {}), **confirmed}, gain, lean,
                           time.perf_counter() - start, shared, fit, pilots,
                           sorted(env.material_name(k) for k in env.lobes.tabled_ids) if env.cosine_tables else [])
 
