@@ -10,18 +10,18 @@ averaged over a few fixed lobes). Prints a table and writes JSON.
     python3 scripts/bench_product.py [--quick] [--json OUT.json] [--envmap FILE.hdr ...]
                                      [--bands 3 5 10 15 20] [--sh-depths 2 4 6]
 
-Maps: the ``--envmap`` files if given (the README's figures use the four
-Poly Haven maps in ``tests/data/envmaps``), else the built-in sun-and-sky
-and studio maps. Throughput lanes carry one Phong lobe
-each (random axis, exponent s = n^2 / 5 for n bands, i.e. s = 20 at 10
-bands), coefficients evaluated beforehand and read from memory; times are
-the median of warm runs (kernel compilation excluded and reported separately), and the operation count of the traced kernels is
-reported as a load-independent cost. The ``lobe`` column times the same
-sampling with the coefficients built in the kernel from each lane's lobe axis,
-as the integrators build them, instead of read from memory (n^2 floats a lane):
-both over Mitsuba's sampler in the same run. With ``--sh-depths`` every listed
-sh_depth is measured
-(the trade-off table); otherwise the default of each band count.
+Maps: the ``--envmap`` files if given (the README's figures use the four Poly
+Haven maps in ``tests/data/envmaps``), else the built-in sun-and-sky and
+studio maps. Throughput lanes carry one Phong lobe each (random axis, exponent
+s = n^2 / 5 for n bands, i.e. s = 20 at 10 bands), coefficients evaluated
+beforehand and read from memory; times are the median of warm runs (kernel
+compilation excluded and reported separately), and the operation count of the
+traced kernels is reported as a load-independent cost. The ``lobe`` column
+times the same sampling with the coefficients built in the kernel from each
+lane's lobe axis, as the integrators build them, instead of read from memory
+(n^2 floats a lane): both over Mitsuba's sampler in the same run. With ``--sh-
+depths`` every listed sh_depth is measured (the trade-off table); otherwise
+the default of each band count.
 
 Memory per shading point: the n^2 float32 coefficients are the only
 per-point data between kernels; the walk keeps about n(n+1)/2 + 2n + 16
