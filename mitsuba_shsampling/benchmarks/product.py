@@ -19,9 +19,9 @@ compilation excluded and reported separately), and the operation count of the
 traced kernels is reported as a load-independent cost. The ``lobe`` column
 times the same sampling with the coefficients built in the kernel from each
 lane's lobe axis, as the integrators build them, instead of read from memory
-(n^2 floats a lane): both over Mitsuba's sampler in the same run. With ``--sh-
-depths`` every listed sh_depth is measured (the trade-off table); otherwise
-the default of each band count.
+(n^2 floats a lane): both over Mitsuba's sampler in the same run. With
+``--sh-depths`` every listed sh_depth is measured (the trade-off table);
+otherwise the default of each band count.
 
 Memory per shading point: the n^2 float32 coefficients are the only
 per-point data between kernels; the walk keeps about n(n+1)/2 + 2n + 16
