@@ -39,6 +39,9 @@ PASS_TIME = {LEAN: 1.0, E.label: 1.07, P.label: 1.3, PO.label: 1.35}
 SUN = envmap_emitter(sun_sky_latlong(256, 512, sun_direction=(0.4, 0.5, 0.75), sun_radius_deg=0.5,
                                      sun_radiance=1e5))
 WINDOW = envmap_emitter(window_latlong(128, 256, direction=(0.3, 0.5, 0.8)))
+#: A lone disk light on black: two map samples beat one map and one BSDF sample on a diffuse floor.
+DISK = envmap_emitter(sun_sky_latlong(128, 256, sun_direction=(0.3, 0.8, 0.5), sun_radius_deg=12.0,
+                                      sun_radiance=50.0, sky_radiance=0.0))
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -175,9 +178,7 @@ def test_environment_only_is_chosen_where_its_measured_time_pays_and_not_elsewhe
     environment costs (a second map sample and shadow ray instead of the BSDF sample's
     occlusion query: 4-25 % of a pass measured), so its pilot's time decides: it is kept
     when it costs a little more, dropped when it costs three times the pass."""
-    disk = envmap_emitter(sun_sky_latlong(128, 256, sun_direction=(0.3, 0.8, 0.5), sun_radius_deg=12.0,
-                                          sun_radiance=50.0, sky_radiance=0.0))
-    scene = floor_scene({"type": "diffuse"}, disk)
+    scene = floor_scene({"type": "diffuse"}, DISK)
     products_never_pay = {P.label: 50.0, PO.label: 50.0}
 
     def lean_choice(environment_only_time):
@@ -196,9 +197,7 @@ def test_environment_only_is_chosen_where_its_measured_time_pays_and_not_elsewhe
 def test_a_pilot_runs_environment_only_where_the_quadrature_prefers_it():
     """The same floor with no pilots given: one pilot pass puts it on environment_only,
     and that pilot's time enters the choice."""
-    disk = envmap_emitter(sun_sky_latlong(128, 256, sun_direction=(0.3, 0.8, 0.5), sun_radius_deg=12.0,
-                                          sun_radiance=50.0, sky_radiance=0.0))
-    scene = floor_scene({"type": "diffuse"}, disk)
+    scene = floor_scene({"type": "diffuse"}, DISK)
     env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
     (key,) = env.strategies.ids
     ran = []

@@ -676,10 +676,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         seen_cheap = {k: {s: v for s, v in row.items() if s in cheap} for k, row in seen.items()}
         lean_seen, _ = minimise_error_at_equal_time(seen_cheap, rest + shared, share, pass_time[LEAN], extra)
         lean_choice = {**best_environment_strategies(variance), **lean_seen}
-        error_lean = ((rest + shared + sum(variance[k][s] for k, s in lean_choice.items()))
-                      * (pass_time[LEAN] + sum(share[k] * extra[k][s] for k, s in lean_choice.items())))
+        error_lean = predicted_error(lean_choice, variance, rest + shared, share, pass_time[LEAN], extra)
         choice = lean_choice
-        confirmed = {}
         if product_possible:
             full_choice, error_full = minimise_error_at_equal_time(seen, rest + shared, share, base, extra)
             if fresh:
