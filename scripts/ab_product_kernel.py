@@ -3,10 +3,13 @@
 Where a change to the product warp moves less than the noise between two runs
 of ``scripts/bench_cost_breakdown.py`` (kernel times there vary by 10 % from run
 to run on a shared machine), run both versions in one process, interleaved:
-``warp/product.py``, ``warp/hierarchy.py`` and ``warp/proxy_lobe.py`` of the
-revision ``--base`` are loaded beside the working tree's (``git show``, into a
-temporary package; the rest of the package is the working tree's), and each
-repeat launches both versions' kernels in alternating order on the same lanes.
+``warp/product.py``, ``warp/hierarchy.py``, ``warp/proxy_lobe.py``,
+``warp/env_leaves.py`` and ``envmap/pyramid.py`` of the revision ``--base`` are
+loaded beside the working tree's (``git show``, into a temporary package; the
+rest of the package is the working tree's), the base version walks a pyramid
+of the scene's map built by the base revision's code (its memory layout), and
+each repeat launches both versions' kernels in alternating order on the same
+lanes.
 
 The lanes are those of ``bench_cost_breakdown.py``: the camera's first hits of
 the scene whose material runs the product (``strategy`` ``product``), at most
@@ -41,31 +44,34 @@ import mitsuba as mi
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import bench_cost_breakdown as breakdown  # noqa: E402
 
-#: The modules of the product walk loaded from the base revision.
-BASE_MODULES = ("product", "hierarchy", "proxy_lobe")
+#: The modules of the product walk loaded from the base revision (package path, module).
+BASE_MODULES = {"product": "warp", "hierarchy": "warp", "proxy_lobe": "warp", "env_leaves": "warp",
+                "pyramid": "envmap"}
 BASE_PACKAGE = "base_product_warp"
 
 
 def load_base(revision: str, directory: pathlib.Path):
-    """The base revision's ``warp/product.py`` as a module, importing that revision's
-    hierarchy and proxy (relative imports kept inside the copy) and the working
+    """The base revision's ``warp/product.py``, ``warp/proxy_lobe.py`` and
+    ``envmap/pyramid.py`` as modules, importing that revision's other
+    :data:`BASE_MODULES` (relative imports kept inside the copy) and the working
     tree's everything else."""
     root = pathlib.Path(__file__).resolve().parent.parent
     package = directory / BASE_PACKAGE
     package.mkdir()
     (package / "__init__.py").write_text("")
-    for name in BASE_MODULES:
-        source = subprocess.run(["git", "show", f"{revision}:mitsuba_shsampling/warp/{name}.py"], cwd=root,
+    for name, folder in BASE_MODULES.items():
+        source = subprocess.run(["git", "show", f"{revision}:mitsuba_shsampling/{folder}/{name}.py"], cwd=root,
                                 check=True, capture_output=True, text=True).stdout
         # Inside the copy: the package's top level is mitsuba_shsampling, and sibling
         # modules outside BASE_MODULES are the working tree's.
+        source = re.sub(r"^from \.\.envmap\.pyramid import", "from .pyramid import", source, flags=re.M)
         source = source.replace("from ..", "from mitsuba_shsampling.")
         source = re.sub(r"^from \.(\w+) import",
                         lambda m: f"from .{m.group(1)} import" if m.group(1) in BASE_MODULES
-                        else f"from mitsuba_shsampling.warp.{m.group(1)} import", source, flags=re.M)
+                        else f"from mitsuba_shsampling.{folder}.{m.group(1)} import", source, flags=re.M)
         (package / f"{name}.py").write_text(source)
     sys.path.insert(0, str(directory))
-    return importlib.import_module(f"{BASE_PACKAGE}.product"), importlib.import_module(f"{BASE_PACKAGE}.proxy_lobe")
+    return tuple(importlib.import_module(f"{BASE_PACKAGE}.{name}") for name in ("product", "proxy_lobe", "pyramid"))
 
 
 def main() -> None:
@@ -83,10 +89,12 @@ def main() -> None:
     dr.eval(u, d)
 
     with tempfile.TemporaryDirectory() as directory:
-        base_product, base_proxy = load_base(args.base, pathlib.Path(directory))
+        base_product, base_proxy, base_pyramid = load_base(args.base, pathlib.Path(directory))
         options = dict(sh_depth=env.warp.sh_depth, defensive_share=env.warp.defensive_share,
                        proxy_depth=env.warp.proxy_depth)
-        versions = {"base": (base_product.ProductWarp(env.pyramid, **options), base_proxy.ProxyLobe),
+        # The same map, laid out in memory as the base revision lays it out.
+        pyramid = base_pyramid.EnvPyramid(env.emitter, mis_compensation=env.warp.pyramid.mis_compensation)
+        versions = {"base": (base_product.ProductWarp(pyramid, **options), base_proxy.ProxyLobe),
                     "tree": (env.warp, None)}
 
         def kernel(version: str, walk: str):

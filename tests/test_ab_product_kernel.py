@@ -8,8 +8,9 @@ import subprocess
 import sys
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-WALK_MODULES = [os.path.join("mitsuba_shsampling", "warp", f"{name}.py") for name in ("product", "hierarchy",
-                                                                                       "proxy_lobe")]
+WALK_MODULES = [os.path.join("mitsuba_shsampling", *path) for path in (
+    ("warp", "product.py"), ("warp", "hierarchy.py"), ("warp", "proxy_lobe.py"), ("warp", "env_leaves.py"),
+    ("envmap", "pyramid.py"))]
 
 
 def walk_is_committed() -> bool:

@@ -21,7 +21,7 @@ import pytest
 
 mi.set_variant("llvm_ad_rgb")
 
-from mitsuba_shsampling.grid import cell_index, grid_coordinates, grid_direction  # noqa: E402
+from mitsuba_shsampling.grid import Cell, cell_index, grid_coordinates, grid_direction  # noqa: E402
 from mitsuba_shsampling.envmap import DEFAULT_MAX_DEPTH, EnvPyramid, auto_depth  # noqa: E402
 from mitsuba_shsampling.envmap.pyramid import DIM_TOTAL, SUBTEXEL_LEVELS  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import (  # noqa: E402
@@ -227,6 +227,28 @@ def test_children_works_with_traced_level_inside_symbolic_loop(case):
     assert (iz.numpy()[0], iphi.numpy()[0]) == (ref_iz, ref_iphi)
 
 
+def test_leaf_corners_are_the_emitter_luminance_at_the_corners_to_a_byte_of_the_largest():
+    """The leaf records keep each leaf's corner values as bytes in units of the largest
+    of the four; the bilinear placement only uses their ratios (plus a floor)."""
+    image = sun_sky_latlong(32, 64)
+    emitter = envmap_emitter(image, 1.0, TILTED_30DEG)
+    pyramid = EnvPyramid(emitter, max_depth=6)
+    rng = np.random.default_rng(7)
+    n = 1 << pyramid.depth
+    iz, iphi = rng.integers(0, n, size=(2, 256))
+    got = np.stack([v.numpy() for v in pyramid.leaf_corners(Cell(pyramid.depth, mi.UInt32(iz), mi.UInt32(iphi)))])
+    # leaf_corners adds a fortieth of the four values' sum to each: take it off again.
+    stored = got - 0.025 * got.sum(axis=0) / 1.1
+    corner_z = [iz, iz, iz + 1, iz + 1]
+    corner_phi = [iphi, iphi + 1, iphi, iphi + 1]
+    z = -1.0 + 2.0 * np.stack(corner_z) / n
+    phi = 2 * np.pi * np.stack(corner_phi) / n
+    s = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    grid = np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=-1).reshape(-1, 3)
+    expected = eval_luminance(emitter, world_from_grid_reference(grid, TILTED_30DEG)).reshape(4, -1)
+    np.testing.assert_allclose(stored / stored.max(axis=0), expected / expected.max(axis=0), atol=1.0 / 255 + 1e-3)
+
+
 # ------------------------------------------------------------- frames
 
 
@@ -324,9 +346,10 @@ def test_depth_resolves_the_texels_plus_subtexel_levels_and_is_capped():
     assert auto_depth(32, 64, max_depth=4) == 4
     pyramid = EnvPyramid(envmap_emitter(random_latlong(32, 64)), max_depth=3)
     assert pyramid.depth == 3
-    assert pyramid.buffer.numpy().nbytes == 4 * 4 * (1 + (4 ** 3 - 1) // 3)
-    assert pyramid.corners.numpy().nbytes == 4 * (2 ** 3 + 1) ** 2
-    assert pyramid.nbytes == pyramid.buffer.numpy().nbytes + pyramid.corners.numpy().nbytes
+    # Levels 0..2 in 4-float blocks; level 3 in one 8-float record per level-2 cell.
+    assert pyramid.buffer.numpy().nbytes == 4 * 4 * (1 + (4 ** 2 - 1) // 3)
+    assert pyramid.records.numpy().nbytes == 4 * 8 * 4 ** 2
+    assert pyramid.nbytes == pyramid.buffer.numpy().nbytes + pyramid.records.numpy().nbytes
     assert pyramid.build_time_s >= 0
     with pytest.raises(ValueError):
         EnvPyramid(envmap_emitter(random_latlong(4, 8)), max_depth=0)

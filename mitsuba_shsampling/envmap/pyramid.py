@@ -36,7 +36,7 @@ import numpy as np
 from ..grid import TWO_PI
 
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
-#: buffer is 22.4 MB. Deeper levels would not help the warps anyway: rescaling
+#: pyramid takes 39 MB. Deeper levels would not help the warps anyway: rescaling
 #: a float32 sample loses about one bit per split, so ~11 levels per
 #: dimension is what a 24-bit mantissa supports (docs/MATH.md, section 5).
 DEFAULT_MAX_DEPTH = 11
@@ -213,6 +213,49 @@ def block_offset(level):
     return 1 + (mi.UInt32(_BLOCK_COUNT_MASK) & ((mi.UInt32(1) << (2 * level)) - 1))
 
 
+LEAF_RECORD_FLOATS = 8
+"""Floats per leaf record: 32 bytes, two records to a cache line."""
+
+CORNER_LEVELS = 255
+"""A leaf's corner values are stored as bytes, in units of their largest over this."""
+
+
+def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """The finest level and the corner values in one array of records, float32
+    (m, m, :data:`LEAF_RECORD_FLOATS`) for the m x m cells of level D - 1 (m = 2^(D-1)).
+
+    Record (I, J) holds that cell's four children (the 4-float block of
+    :func:`sum_pyramid_blocks`, ``finest_blocks`` row I m + J), then one 32-bit word per
+    child, in the same order, with the target at that leaf's four corners (z0 phi0, z0
+    phi1, z1 phi0, z1 phi1: ``corners`` (2m + 1, 2m + 1) at rows iz, iz + 1 and columns
+    iphi, iphi + 1) as bytes, lowest first, each rounded in units of the largest of the
+    four over :data:`CORNER_LEVELS` (the bits of a uint32 in a float32 slot).
+
+    Why: a walk's last split reads the four children and the bilinear placement then
+    reads the chosen leaf's corners. Stored apart (the corners as a float32 (2^D + 1)^2
+    array), that is three cache lines from two arrays of 17 MB each at depth 11, cold for
+    most samples: a fifth of the product sample's time (docs/MEASUREMENTS.md, "Leaf
+    records"). In one record the corners come from the line the children's gather has
+    just brought in. Only the four values' ratios shape the placement (it normalises
+    them), and the placement raises each by a fortieth of their sum
+    (:meth:`EnvPyramid.leaf_corners`), so bytes lose nothing that the floor does not
+    already set; the sample and its pdf read the same bytes.
+    """
+    m = corners.shape[0] // 2
+    n = 2 * m
+    leaf = [corners[:n, :n], corners[:n, 1:], corners[1:, :n], corners[1:, 1:]]
+    largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3]))
+    unit = np.where(largest > 0, CORNER_LEVELS / np.where(largest > 0, largest, 1.0), 0.0)
+    words = np.zeros((n, n), dtype=np.uint32)
+    for shift, value in zip((0, 8, 16, 24), leaf):
+        words |= np.rint(value * unit).astype(np.uint32) << np.uint32(shift)
+    records = np.zeros((m, m, LEAF_RECORD_FLOATS), dtype=np.float32)
+    records[..., :4] = finest_blocks.reshape(m, m, 4)
+    # Leaf (2 I + a, 2 J + b) is child 2 a + b of record (I, J).
+    records[..., 4:].view(np.uint32)[...] = words.reshape(m, 2, m, 2).transpose(0, 2, 1, 3).reshape(m, m, 4)
+    return records
+
+
 class EnvmapError(ValueError):
     """An ``envmap`` the pyramid cannot represent (a ``to_world`` that is not a
     rotation, a negative or non-finite ``scale``); the message is one line."""
@@ -254,11 +297,14 @@ class EnvPyramid:
     and holds the integral of ``scale * luminance(radiance)`` over that
     solid angle (radiance x sr).
 
-    Storage: one flat ``mi.Float`` ``buffer`` of 4-float blocks. Block 0 is
-    ``[total, 0, 0, 0]``; the 4^(k+1) values of level k+1 follow, one block
-    per level-k parent (row-major in (iz, iphi)), each block holding the
-    children (a, b) = (0,0), (0,1), (1,0), (1,1), a = z-half, b = phi-half.
-    So :meth:`children` is a single ``dr.gather(mi.Vector4f, ...)``.
+    Storage: one flat ``mi.Float`` ``buffer`` of 4-float blocks for levels 0 .. D-1.
+    Block 0 is ``[total, 0, 0, 0]``; the 4^(k+1) values of level k+1 follow, one
+    block per level-k parent (row-major in (iz, iphi)), each block holding the
+    children (a, b) = (0,0), (0,1), (1,0), (1,1), a = z-half, b = phi-half. So
+    :meth:`children` is a single ``dr.gather(mi.Vector4f, ...)``. Level D is in
+    ``records``, one 32-byte record per level D-1 cell: its four children's block,
+    then their corner values (:func:`leaf_records`), which the bilinear placement
+    inside a leaf reads from the cache line the last split has just loaded.
 
     Bad texels, with one warning: a texel with a NaN or infinite channel is
     set to 0 *in the emitter's own data* (``mi.traverse`` + ``params.update()``),
@@ -278,7 +324,7 @@ class EnvPyramid:
     emitter: a Mitsuba ``envmap`` emitter (``TypeError`` otherwise).
     max_depth: cap on the finest level D (default :data:`DEFAULT_MAX_DEPTH`);
         D = min(ceil(log2(max(W, H))) + SUBTEXEL_LEVELS, max_depth), at least 1
-        (a 1024x512 map: D = 11, a 22 MB buffer, well under a second to build).
+        (a 1024x512 map: D = 11, 39 MB, well under a second to build).
     mis_compensation: subtract the map's mean radiance from every finest cell
         (clamped at 0) before summing, as Mitsuba's ``envmap`` option of the
         same name does for its own sampler. ``total`` is then the integral of
@@ -378,7 +424,11 @@ class EnvPyramid:
                 corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
 
         blocks = sum_pyramid_blocks(finest)
-        buffer = blocks.astype(np.float32)
+        # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
+        # leaf records with the corners they need (see :func:`leaf_records`).
+        upper_end = 4 * block_offset(depth - 1)
+        buffer = blocks[:upper_end].astype(np.float32)
+        records = leaf_records(blocks[upper_end:].astype(np.float32), corners)
 
         #: Finest level D; levels 0..D exist.
         self.depth: int = depth
@@ -393,15 +443,17 @@ class EnvPyramid:
             warnings.warn(f"EnvPyramid: the map's integral {self.total:.3g} (radiance x sr) is below {DIM_TOTAL:g}, "
                           "where float32 cell integrals lose their precision: it is sampled as black, and "
                           "Mitsuba's own envmap sampling takes over", RuntimeWarning, stacklevel=3)
+        #: Levels 0 .. D-1 in 4-float blocks (the class docstring's layout).
         self.buffer: mi.Float = mi.Float(buffer)
-        #: The sampling target (radiance, compensated like the cells) at the finest
-        #: cells' corners, (2^D + 1)^2 values: the bilinear density inside a leaf.
-        self.corners: mi.Float = mi.Float(corners.ravel())
-        self.nbytes: int = buffer.nbytes + corners.nbytes
+        #: Level D with the sampling target (radiance, compensated like the cells) at its
+        #: cells' corners, one :data:`LEAF_RECORD_FLOATS`-float record per level D-1 cell
+        #: (:func:`leaf_records`): the bilinear density inside a leaf.
+        self.records: mi.Float = mi.Float(records.ravel())
+        self.nbytes: int = buffer.nbytes + records.nbytes
         self.to_world: mi.AffineTransform4f = to_world
         self.to_local: mi.AffineTransform4f = to_world.inverse()
         self.texel_resolution: tuple[int, int] = (height, width)
-        dr.eval(self.buffer, self.corners)
+        dr.eval(self.buffer, self.records)
         self.build_time_s: float = time.perf_counter() - start
 
     # ----------------------------------------------------------------- lookups
@@ -414,27 +466,45 @@ class EnvPyramid:
         a = upper-z half, b = upper-phi half. One gather; ``level`` may be a
         traced ``mi.UInt32`` (e.g. a ``dr.while_loop`` state variable).
         """
-        block = block_offset(level) + ((mi.UInt32(iz) << level) | mi.UInt32(iphi))
-        return dr.gather(mi.Vector4f, self.buffer, block, active)
+        iz, iphi = mi.UInt32(iz), mi.UInt32(iphi)
+        cell = (iz << level) | iphi
+        last = self.depth - 1
+        # A record is LEAF_RECORD_FLOATS / 4 Vector4f long and starts with the four children.
+        in_records = (LEAF_RECORD_FLOATS // 4) * cell
+        if isinstance(level, numbers.Integral):
+            if level == last:
+                return dr.gather(mi.Vector4f, self.records, in_records, active)
+            return dr.gather(mi.Vector4f, self.buffer, block_offset(level) + cell, active)
+        is_last = mi.UInt32(level) == last
+        return dr.select(is_last, dr.gather(mi.Vector4f, self.records, in_records, active & is_last),
+                         dr.gather(mi.Vector4f, self.buffer, block_offset(level) + cell, active & ~is_last))
 
     def cell_integral(self, level: int | mi.UInt32, iz: mi.UInt32, iphi: mi.UInt32,
                       active: mi.Bool = True) -> mi.Float:
         """Integral over cell (iz, iphi) at ``level`` (0..depth), radiance x sr."""
         iz, iphi = mi.UInt32(iz), mi.UInt32(iphi)
         parent_level = dr.maximum(mi.UInt32(level), 1) - 1
-        block = block_offset(parent_level) + (((iz >> 1) << parent_level) | (iphi >> 1))
-        index = 4 * block + 2 * (iz & 1) + (iphi & 1)
-        index = dr.select(mi.UInt32(level) == 0, 0, index)
-        return dr.gather(mi.Float, self.buffer, index, active)
+        parent = ((iz >> 1) << parent_level) | (iphi >> 1)
+        child = 2 * (iz & 1) + (iphi & 1)
+        finest = mi.UInt32(level) == self.depth
+        in_buffer = dr.select(mi.UInt32(level) == 0, 0, 4 * (block_offset(parent_level) + parent) + child)
+        from_records = dr.gather(mi.Float, self.records, LEAF_RECORD_FLOATS * parent + child, active & finest)
+        from_buffer = dr.gather(mi.Float, self.buffer, in_buffer, active & ~finest)
+        if isinstance(level, numbers.Integral):
+            return from_records if level == self.depth else from_buffer  # the other is never traced
+        return dr.select(finest, from_records, from_buffer)
 
     def leaf_corners(self, leaf) -> list:
         """The target at a finest cell's corners (z0 phi0, z0 phi1, z1 phi0, z1 phi1), each
         raised by a tenth of their mean: samples follow the bilinear slope inside the leaf
         (a sun smaller than a texel is then drawn where it is, not spread over the leaf),
-        and the density stays within a bounded factor of uniform everywhere in it."""
-        row = (1 << self.depth) + 1
-        base = mi.UInt32(leaf.iz) * row + mi.UInt32(leaf.iphi)
-        values = [dr.gather(mi.Float, self.corners, base + offset) for offset in (0, 1, row, row + 1)]
+        and the density stays within a bounded factor of uniform everywhere in it. They
+        share a cache line with the leaf's own integral (:func:`leaf_records`)."""
+        iz, iphi = mi.UInt32(leaf.iz), mi.UInt32(leaf.iphi)
+        record = ((iz >> 1) << (self.depth - 1)) | (iphi >> 1)
+        child = 2 * (iz & 1) + (iphi & 1)
+        word = dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, self.records, LEAF_RECORD_FLOATS * record + 4 + child))
+        values = [mi.Float((word >> shift) & 0xFF) for shift in (0, 8, 16, 24)]
         floor = 0.025 * ((values[0] + values[1]) + (values[2] + values[3]))
         return [v + floor for v in values]
 
@@ -446,8 +516,11 @@ class EnvPyramid:
         if k == 0:
             return self.buffer.numpy()[:1].reshape(1, 1).copy()
         m = 1 << (k - 1)
-        begin = 4 * block_offset(k - 1)
-        blocks = self.buffer.numpy()[begin:begin + 4 * m * m].reshape(m, m, 2, 2)
+        if k == self.depth:
+            blocks = self.records.numpy().reshape(m, m, LEAF_RECORD_FLOATS)[..., :4].reshape(m, m, 2, 2)
+        else:
+            begin = 4 * block_offset(k - 1)
+            blocks = self.buffer.numpy()[begin:begin + 4 * m * m].reshape(m, m, 2, 2)
         return blocks.transpose(0, 2, 1, 3).reshape(2 * m, 2 * m).copy()
 
     # ------------------------------------------------------------------ frames

@@ -32,7 +32,7 @@ kernel operations than one further SH level and gained less
 Memory per shading point: the n^2 float32 coefficients (400 B at 10 bands,
 1.6 kB at 20) are the only per-point data; the walk keeps about
 n(n+1)/2 + 2n further floats in registers while it runs. The pyramid is
-shared by all points (its size: :attr:`EnvPyramid.nbytes`, at most ~22 MB at
+shared by all points (its size: :attr:`EnvPyramid.nbytes`, at most ~39 MB at
 its default depth cap).
 
 Whatever the weights, the pdf is the product of the branch probabilities
