@@ -37,6 +37,36 @@ def write_json(path: str, records) -> None:
     print(f"wrote {path}")
 
 
+def kernel_seconds(run) -> float:
+    """Execution time (s) of the JIT kernels that ``run()`` launches (it must wait for them):
+    what a replayed ``dr.freeze`` recording costs, without Python's tracing."""
+    import drjit as dr
+
+    was_on = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()  # clears it
+    try:
+        run()
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was_on)
+    return 1e-3 * sum(k["execution_time"] for k in history if k["type"] == dr.KernelType.JIT)
+
+
+def interleaved_kernel_seconds(runs: dict, repeats: int) -> dict:
+    """Name -> the kernel times (s) of ``repeats`` calls of each of ``runs`` (name ->
+    callable), interleaved: round k calls every run once, starting with run k (mod their
+    number), so a slow spell of a shared machine falls on all of them alike and none always
+    follows the same one."""
+    names = list(runs)
+    times = {name: [] for name in names}
+    for k in range(repeats):
+        shift = k % len(names)
+        for name in names[shift:] + names[:shift]:
+            times[name].append(kernel_seconds(runs[name]))
+    return times
+
+
 def set_default_variant() -> None:
     """The variant the benchmarks measure (their scripts' only one)."""
     import mitsuba as mi

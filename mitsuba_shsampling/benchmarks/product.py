@@ -14,9 +14,11 @@ Maps: the ``--envmap`` files if given (the README's figures use the four Poly
 Haven maps in ``tests/data/envmaps``), else the built-in sun-and-sky and
 studio maps. Throughput lanes carry one Phong lobe each (random axis, exponent
 s = n^2 / 5 for n bands, i.e. s = 20 at 10 bands), coefficients evaluated
-beforehand and read from memory; times are the median of warm runs (kernel
-compilation excluded and reported separately), and the operation count of the
-traced kernels is reported as a load-independent cost. The ``lobe`` column
+beforehand and read from memory. Times are kernel execution times (Python's
+tracing excluded, as a ``dr.freeze`` replay runs), the median of warm runs with
+Mitsuba's sampler and the product's runs interleaved round by round (the first
+call's wall time, compilation included, is reported separately); the operation
+count of the traced kernels is reported as a load-independent cost. The ``lobe`` column
 times the same sampling with the coefficients built in the kernel from each
 lane's lobe axis, as the integrators build them, instead of read from memory
 (n^2 floats a lane): both over Mitsuba's sampler in the same run. With
@@ -47,7 +49,7 @@ from ..fidelity import product_fidelity
 from ..scenes import builtin_envmaps
 from ..sh.basis import sh_eval
 from ..warp.product import DEFAULT_PROXY_DEPTH, SH_DEPTH_WITH_PROXY, ProductWarp
-from . import set_default_variant, write_json
+from . import interleaved_kernel_seconds, set_default_variant, write_json
 
 #: Lobe axes (grid frame) of the fidelity figures: zenith, horizon, nadir-ish, oblique.
 #: Deepest pyramid on which the fidelity figures are computed (4^10 leaves).
@@ -69,17 +71,11 @@ def phong_lobes(n_bands: int, axes: mi.Vector3f, s: float) -> list:
     return [lam[math.isqrt(i)] * y for i, y in enumerate(basis)]
 
 
-def timed(run, repeats: int) -> tuple[float, float]:
-    """(first call incl. compilation, median of ``repeats`` warm calls), seconds."""
+def first_call_seconds(run) -> float:
+    """Wall time (s) of ``run()``'s first call: tracing and compilation included."""
     start = time.perf_counter()
     run()
-    first = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return first, statistics.median(times)
+    return time.perf_counter() - start
 
 
 def kernel_ops(run) -> int:
@@ -172,15 +168,18 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
                 dr.eval(warp.pdf(coeffs, d))
                 dr.sync_thread()
 
-            # Mitsuba right before and after the product run: load on a shared
-            # machine drifts, and the ratio is what the target is about.
-            _, mitsuba_before = timed(mitsuba_run, settings.repeats)
-            compile_s, sample_s = timed(sample_run, settings.repeats)
-            _, lobe_s = timed(sample_lobe_run, settings.repeats)
-            _, pdf_s = timed(pdf_run, settings.repeats)
-            _, mitsuba_after = timed(mitsuba_run, settings.repeats)
+            # Every run compiled once (that call's wall time reported), then timed interleaved
+            # by kernel time: load on a shared machine drifts, and the ratio is what the
+            # target is about.
+            compile_s = first_call_seconds(sample_run)
+            for warm in (mitsuba_run, sample_lobe_run, pdf_run):
+                warm()
+            times = interleaved_kernel_seconds(
+                {"mitsuba": mitsuba_run, "sample": sample_run, "lobe": sample_lobe_run, "pdf": pdf_run},
+                settings.repeats)
+            mitsuba_s, sample_s, lobe_s, pdf_s = (statistics.median(times[k])
+                                                  for k in ("mitsuba", "sample", "lobe", "pdf"))
             sample_ops, mitsuba_ops = kernel_ops(sample_run), kernel_ops(mitsuba_run)
-            mitsuba_s = 0.5 * (mitsuba_before + mitsuba_after)
             fidelity_warp = settings.warp(fidelity_pyramid, sh_depth)
             figures = [product_fidelity(fidelity_warp, lobe) for lobe in fidelity_lobes]
             mean = {key: float(np.mean([f[key] for f in figures])) for key in figures[0]}
