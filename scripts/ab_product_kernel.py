@@ -3,7 +3,7 @@
 Where a change to the product warp moves less than the noise between two runs
 of ``scripts/bench_cost_breakdown.py`` (kernel times there vary by 10 % from run
 to run on a shared machine), run both versions in one process, interleaved:
-``warp/product.py``, ``warp/hierarchy.py``, ``warp/proxy_lobe.py``,
+``warp/product.py``, ``warp/hierarchy.py``, ``warp/hsw.py``, ``warp/proxy_lobe.py``,
 ``warp/env_leaves.py`` and ``envmap/pyramid.py`` of the revision ``--base`` are
 loaded beside the working tree's (``git show``, into a temporary package; the
 rest of the package is the working tree's), the base version walks a pyramid
@@ -45,8 +45,8 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import bench_cost_breakdown as breakdown  # noqa: E402
 
 #: The modules of the product walk loaded from the base revision (package path, module).
-BASE_MODULES = {"product": "warp", "hierarchy": "warp", "proxy_lobe": "warp", "env_leaves": "warp",
-                "pyramid": "envmap"}
+BASE_MODULES = {"product": "warp", "hierarchy": "warp", "hsw": "warp", "proxy_lobe": "warp",
+                "env_leaves": "warp", "pyramid": "envmap"}
 BASE_PACKAGE = "base_product_warp"
 
 

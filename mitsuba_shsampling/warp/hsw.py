@@ -29,6 +29,7 @@ solid angle in that frame.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -45,7 +46,42 @@ DEFAULT_DEPTH = 8
 
 
 CONSTANT_ROW_LEVELS = 3
-"""Levels whose z midpoints are picked from host-computed rows (see below)."""
+"""Levels whose cells' bounds-only values are picked from host-computed rows (see
+:class:`SHCellWeights`)."""
+
+
+class ConstantLevel(NamedTuple):
+    """Host-computed values of one of the top levels, per cell row iz or column iphi."""
+
+    f_mid: dict
+    """(l, m) -> antiderivative at each row's z midpoint."""
+    z_lo: dict
+    """(l, m) -> z-integral row of each row's lower half (midpoint minus lower bound)."""
+    phi_left: list
+    """Per index m + order: phi integral over each column's left half."""
+    phi_right: list
+    centres: tuple
+    """(cos, sin) of each column's left, then right half's centre."""
+
+
+@functools.lru_cache(maxsize=None)
+def constant_level(level: int, order: int) -> ConstantLevel:
+    """The values :class:`SHCellWeights` selects on a top level, in float64 (as Python
+    floats), for the 2^level rows and columns of cells."""
+    cells = 2 ** level
+    lower = [constant_antiderivatives(-1.0 + 2 * j / cells, order) for j in range(cells)]
+    middle = [constant_antiderivatives(-1.0 + (2 * j + 1) / cells, order) for j in range(cells)]
+    h = math.pi / 2 ** (level + 1)
+    # Column j spans [2 pi j, 2 pi (j + 1)] / 2^level; its halves' centres are c -+ h.
+    centres = [(2 * j + 1) * math.pi / cells for j in range(cells)]
+    left = [phi_integrals_centred(math.cos(c - h), math.sin(c - h), h, order) for c in centres]
+    right = [phi_integrals_centred(math.cos(c + h), math.sin(c + h), h, order) for c in centres]
+    return ConstantLevel(
+        {k: [row[k] for row in middle] for k in middle[0]},
+        {k: [mid[k] - low[k] for mid, low in zip(middle, lower)] for k in middle[0]},
+        [[row[i] for row in left] for i in range(2 * order + 1)],
+        [[row[i] for row in right] for i in range(2 * order + 1)],
+        tuple([f(c + sign * h) for c in centres] for sign in (-1, 1) for f in (math.cos, math.sin)))
 
 
 class SHCellState(NamedTuple):
@@ -77,11 +113,14 @@ class SHCellWeights:
     bound, the z-contraction A[m] of the whole cell and cos/sin of the cell's
     phi centre.
 
-    At level k the z midpoints are one of 2^k dyadic values, the same for
-    every lane, so on the top :data:`CONSTANT_ROW_LEVELS` levels the
-    antiderivative row is selected among rows computed once on the host in
-    float64 (at most 3 selects per entry) instead of running the Legendre
-    recurrences per lane: the bulk of a level's cost otherwise.
+    On the top :data:`CONSTANT_ROW_LEVELS` levels a cell is one of 2^k x 2^k
+    with the same bounds in every lane, so what depends on the bounds alone is
+    selected among values computed once on the host in float64 (at most 3
+    selects per entry, :func:`constant_level`) instead of computed per lane:
+    the lower child's z-integral row (no Legendre recurrence, no subtraction of
+    the carried row) and the children's phi integrals (no recurrence on the
+    carried centre). The carried row and centre are then only formed where a
+    deeper level needs them (Dr.Jit traces nothing else).
     """
 
     def __init__(self, coeffs: list):
@@ -97,32 +136,34 @@ class SHCellWeights:
         # The root spans [0, 2 pi): centre pi.
         return SHCellState(self._root_lo, self._root_cell, mi.Float(-1.0), mi.Float(0.0))
 
-    def _midpoint_row(self, cell) -> dict:
-        """Antiderivative row at the z midpoint of every lane's cell."""
-        if cell.level >= CONSTANT_ROW_LEVELS:
-            return legendre_antiderivatives(cell.zm, self.order)
-        cells = 2 ** cell.level
-        rows = [constant_antiderivatives(-1.0 + (2 * j + 1) / cells, self.order) for j in range(cells)]
-        out = {}
-        for key in rows[0]:
-            value = mi.Float(rows[0][key])
-            for j in range(1, cells):
-                value = dr.select(cell.iz == j, rows[j][key], value)
-            out[key] = value
-        return out
-
     def children(self, state: SHCellState, cell: Cell) -> Split:
-        f_mid = self._midpoint_row(cell)
-        z_lo = {k: f_mid[k] - state.f_lo[k] for k in f_mid}
+        if cell.level < CONSTANT_ROW_LEVELS:
+            level = constant_level(cell.level, self.order)
+
+            def pick(values, index):
+                """values[index] per lane, from per-cell Python floats."""
+                out = mi.Float(values[0])
+                for j in range(1, len(values)):
+                    out = dr.select(index == j, values[j], out)
+                return out
+
+            f_mid = {k: pick(v, cell.iz) for k, v in level.f_mid.items()}
+            z_lo = {k: pick(v, cell.iz) for k, v in level.z_lo.items()}
+            left = [pick(v, cell.iphi) for v in level.phi_left]
+            right = [pick(v, cell.iphi) for v in level.phi_right]
+            centres = tuple(pick(v, cell.iphi) for v in level.centres)
+        else:
+            f_mid = legendre_antiderivatives(cell.zm, self.order)
+            z_lo = {k: f_mid[k] - state.f_lo[k] for k in f_mid}
+            centres = child_phi_centres(state.cos_c, state.sin_c, cell.level)
+            h = math.pi / 2 ** (cell.level + 1)
+            left = phi_integrals_centred(centres[0], centres[1], h, self.order)
+            right = phi_integrals_centred(centres[2], centres[3], h, self.order)
         a_lo = contract_z(self.coeffs, z_lo, self.order)
         a_hi = [ac - al for ac, al in zip(state.a_cell, a_lo)]
-        cos_l, sin_l, cos_r, sin_r = child_phi_centres(state.cos_c, state.sin_c, cell.level)
-        h = math.pi / 2 ** (cell.level + 1)
-        left = phi_integrals_centred(cos_l, sin_l, h, self.order)
-        right = phi_integrals_centred(cos_r, sin_r, h, self.order)
         weights = (contract_phi(a_lo, left), contract_phi(a_lo, right),
                    contract_phi(a_hi, left), contract_phi(a_hi, right))
-        return Split(weights, SHCellSplit(f_mid, a_lo, a_hi, (cos_l, sin_l, cos_r, sin_r)))
+        return Split(weights, SHCellSplit(f_mid, a_lo, a_hi, centres))
 
     def advance(self, state: SHCellState, pending: SHCellSplit, cell: Cell, a, b) -> SHCellState:
         cos_l, sin_l, cos_r, sin_r = pending.centres
