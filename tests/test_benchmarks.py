@@ -99,3 +99,23 @@ def test_the_product_benchmark_times_the_warp_with_its_lobes_from_memory_and_bui
     for key in ("ratio_to_mitsuba", "lobe_in_kernel_ratio_to_mitsuba", "msamples_per_s",
                 "lobe_in_kernel_msamples_per_s"):
         assert 0.0 < row[key] < float("inf"), key
+
+
+def test_interleaved_timing_runs_each_kernel_once_a_round_in_a_rotating_order():
+    """Round k starts with run k (mod their number): no run always follows the same one, and a
+    slow spell of the machine falls on all of them. Times are the kernels' execution times."""
+    import drjit as dr
+    calls = []
+
+    def run(name):
+        def launch():
+            calls.append(name)
+            dr.eval(dr.arange(mi.Float, 1000) * 2.0)
+            dr.sync_thread()
+        return launch
+
+    times = benchmarks.interleaved_kernel_seconds({n: run(n) for n in "abc"}, repeats=4)
+    assert calls == list("abc" "bca" "cab" "abc")
+    assert {n: len(t) for n, t in times.items()} == {"a": 4, "b": 4, "c": 4}
+    assert all(t >= 0.0 for ts in times.values() for t in ts)
+    assert benchmarks.kernel_seconds(lambda: None) == 0.0  # no kernel launched, no time
