@@ -23,7 +23,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.grid import Cell, cell_index, grid_coordinates, grid_direction  # noqa: E402
 from mitsuba_shsampling.envmap import DEFAULT_MAX_DEPTH, EnvPyramid, auto_depth  # noqa: E402
-from mitsuba_shsampling.envmap.pyramid import DIM_TOTAL, SUBTEXEL_LEVELS  # noqa: E402
+from mitsuba_shsampling.envmap.pyramid import DIM_TOTAL, SUBTEXEL_LEVELS, leaf_records  # noqa: E402
 from mitsuba_shsampling.envmap.synthetic import (  # noqa: E402
     constant_latlong, envmap_emitter, sun_sky_latlong)
 
@@ -247,6 +247,20 @@ def test_leaf_corners_are_the_emitter_luminance_at_the_corners_to_a_byte_of_the_
     grid = np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=-1).reshape(-1, 3)
     expected = eval_luminance(emitter, world_from_grid_reference(grid, TILTED_30DEG)).reshape(4, -1)
     np.testing.assert_allclose(stored / stored.max(axis=0), expected / expected.max(axis=0), atol=1.0 / 255 + 1e-3)
+
+
+def test_leaf_records_keep_the_shape_of_denormal_and_huge_corners_and_zero_for_black_leaves():
+    corners = np.zeros((5, 5), dtype=np.float32)
+    corners[1, 1] = 1e-42    # denormal: the largest corner of the leaves around it
+    corners[3, 3] = 3e38     # near float32's largest
+    corners[3, 4] = 1.5e38
+    words = leaf_records(np.zeros((4, 4), dtype=np.float32), corners)[..., 4:].view(np.uint32)
+    leaf_word = {(2 * i + a, 2 * j + b): int(words[i, j, 2 * a + b]) for i in range(2) for j in range(2)
+                 for a in range(2) for b in range(2)}
+    # Corners (z0 phi0, z0 phi1, z1 phi0, z1 phi1) are the bytes from the lowest up.
+    assert leaf_word[(0, 0)] == 255 << 24 and leaf_word[(1, 1)] == 255
+    assert leaf_word[(2, 3)] == (128 << 24) | (255 << 16) and leaf_word[(3, 3)] == (128 << 8) | 255
+    assert leaf_word[(3, 0)] == 0   # a black leaf: its placement is uniform
 
 
 # ------------------------------------------------------------- frames

@@ -244,7 +244,8 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     m = corners.shape[0] // 2
     n = 2 * m
     leaf = [corners[:n, :n], corners[:n, 1:], corners[1:, :n], corners[1:, 1:]]
-    largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3]))
+    largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3])).astype(np.float64)
+    # In float64: 255 over a denormal float32 would overflow float32 (and 0 x inf is NaN).
     unit = np.where(largest > 0, CORNER_LEVELS / np.where(largest > 0, largest, 1.0), 0.0)
     words = np.zeros((n, n), dtype=np.uint32)
     for shift, value in zip((0, 8, 16, 24), leaf):
