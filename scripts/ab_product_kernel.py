@@ -44,7 +44,7 @@ import mitsuba as mi
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import bench_cost_breakdown as breakdown  # noqa: E402
 
-#: The modules of the product walk loaded from the base revision (package path, module).
+#: The modules of the product walk loaded from the base revision: module -> its folder in the package.
 BASE_MODULES = {"product": "warp", "hierarchy": "warp", "hsw": "warp", "proxy_lobe": "warp",
                 "env_leaves": "warp", "pyramid": "envmap"}
 BASE_PACKAGE = "base_product_warp"
