@@ -10,8 +10,7 @@ import sys
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 WALK_MODULES = [os.path.join("mitsuba_shsampling", *path) for path in (
     ("warp", "product.py"), ("warp", "hierarchy.py"), ("warp", "hsw.py"), ("warp", "proxy_lobe.py"),
-    ("warp", "env_leaves.py"),
-    ("envmap", "pyramid.py"))]
+    ("warp", "env_leaves.py"), ("envmap", "pyramid.py"))]
 
 
 def walk_is_committed() -> bool:
