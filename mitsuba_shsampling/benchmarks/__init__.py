@@ -39,18 +39,11 @@ def write_json(path: str, records) -> None:
 
 def kernel_seconds(run) -> float:
     """Execution time (s) of the JIT kernels that ``run()`` launches (it must wait for them):
-    what a replayed ``dr.freeze`` recording costs, without Python's tracing."""
-    import drjit as dr
+    what a replayed ``dr.freeze`` recording costs, without Python's tracing (the chooser's
+    :func:`~mitsuba_shsampling.integrators.chooser.kernel_time`, which measures its pilots)."""
+    from ..integrators.chooser import kernel_time
 
-    was_on = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()  # clears it
-    try:
-        run()
-        history = dr.kernel_history()
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, was_on)
-    return 1e-3 * sum(k["execution_time"] for k in history if k["type"] == dr.KernelType.JIT)
+    return kernel_time(run)[1]
 
 
 def interleaved_kernel_seconds(runs: dict, repeats: int) -> dict:
