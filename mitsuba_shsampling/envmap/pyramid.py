@@ -152,10 +152,11 @@ def _corner_radiance(lum: np.ndarray, n: int) -> np.ndarray:
     c0 = np.floor(column).astype(np.int64) % width
     fc = (column - np.floor(column))[None, :]
     c1 = (c0 + 1) % width
+    # Separable: along theta first at the map's width, then along u at the grid's
+    # (two (n + 1)^2 gathers, not four).
     lum = lum.astype(np.float32)
-    top = lum[r0][:, c0] * (1 - fc) + lum[r0][:, c1] * fc
-    bottom = lum[r1][:, c0] * (1 - fc) + lum[r1][:, c1] * fc
-    return (top * (1 - fr) + bottom * fr).astype(np.float32)
+    rows = lum[r0] * (1 - fr).astype(np.float32) + lum[r1] * fr.astype(np.float32)
+    return (rows[:, c0] * (1 - fc).astype(np.float32) + rows[:, c1] * fc.astype(np.float32)).astype(np.float32)
 
 
 def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
@@ -243,13 +244,19 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """
     m = corners.shape[0] // 2
     n = 2 * m
+    corners = np.asarray(corners, dtype=np.float32)
     leaf = [corners[:n, :n], corners[:n, 1:], corners[1:, :n], corners[1:, 1:]]
-    largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3])).astype(np.float64)
-    # In float64: 255 over a denormal float32 would overflow float32 (and 0 x inf is NaN).
-    unit = np.where(largest > 0, CORNER_LEVELS / np.where(largest > 0, largest, 1.0), 0.0)
+    largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3]))
+    # value / largest first (at most 1), then the scale: 255 over a denormal largest
+    # would overflow float32. A black leaf (0 / 0) gets zeros.
+    safe = np.where(largest > 0, largest, np.float32(1.0))
     words = np.zeros((n, n), dtype=np.uint32)
+    byte = np.empty((n, n), dtype=np.float32)
     for shift, value in zip((0, 8, 16, 24), leaf):
-        words |= np.rint(value * unit).astype(np.uint32) << np.uint32(shift)
+        np.divide(value, safe, out=byte)
+        byte *= np.float32(CORNER_LEVELS)
+        np.rint(byte, out=byte)
+        words |= byte.astype(np.uint32) << np.uint32(shift)
     records = np.zeros((m, m, LEAF_RECORD_FLOATS), dtype=np.float32)
     records[..., :4] = finest_blocks.reshape(m, m, 4)
     # Leaf (2 I + a, 2 J + b) is child 2 a + b of record (I, J).
