@@ -144,7 +144,7 @@ def render_file(args) -> dict:
     output = args.output or os.path.splitext(os.path.basename(path))[0] + ".exr"
     check_output(output)
     try:
-        scene = mi.load_file(path, **defines)
+        scene = mi.load_file(path, parallel=False, **defines)  # stable registry ids: see scenes.load_scene
         integrator = mi.load_dict({"type": args.integrator}) if args.integrator else scene.integrator()
     except RuntimeError as err:
         raise RenderError(f"cannot load {path}: {_one_line(err)}") from None

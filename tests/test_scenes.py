@@ -118,3 +118,20 @@ def test_baked_sunsky_map_keeps_the_irradiance_of_sun_and_sky():
     E_map = bake.irradiance_up(envmap, 1 << 20)
     E_sunsky = bake.irradiance_up(bake.load_sunsky(), 1 << 20)
     np.testing.assert_allclose(E_map, E_sunsky, rtol=0.03)
+
+
+def test_load_scene_gives_the_scene_objects_the_same_registry_order_every_time():
+    """Loaded serially: in parallel the BSDFs' registry ids come in a different order from
+    load to load, and so does the order in which Dr.Jit traces their code, which makes
+    every run's kernels new to its kernel cache (seconds of compilation a first render)."""
+    from mitsuba_shsampling.scene_materials import registry_id, scene_materials
+
+    path = scenes.builtin_scenes()["material_studio"]
+
+    def names_by_id():
+        scene = scenes.load_scene(path, res=8, spp=1)
+        return [m.name for m in sorted(scene_materials(scene), key=lambda m: registry_id(m.bsdf))]
+
+    first = names_by_id()
+    assert len(first) >= 8
+    assert all(names_by_id() == first for _ in range(4))

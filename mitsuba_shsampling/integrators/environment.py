@@ -33,7 +33,7 @@ from ..scene_materials import registry_id, scene_materials
 from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
-from .estimators import environment_sample, is_emitter, mis_weight, mitsuba_emitter_sample
+from .estimators import emitter_id, environment_sample, is_emitter, mis_weight, mitsuba_emitter_sample
 from .options import ProductOptions
 from .strategy import AUTO, Strategy, StrategyTable, strategy_named
 
@@ -63,6 +63,7 @@ class ProductEnvironment:
     def __init__(self, scene: mi.Scene, options: ProductOptions, carry_all: bool = False):
         self.scene = scene
         self.emitter = scene.environment()
+        self.emitter_id = emitter_id(self.emitter) if self.emitter is not None else None
         self.pyramid = self.lobes = self.warp = self.warp_plain = None
         self.env_directions = self.env_plain = None
         self.strategies = self.choice = None
@@ -323,7 +324,7 @@ class ProductEnvironment:
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""
-        return is_emitter(emitter, self.emitter)
+        return is_emitter(emitter, self.emitter_id)
 
 
 class LaneLobe(NamedTuple):

@@ -9,7 +9,7 @@ from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid
 from ..lobes.fit import luminance
 from ..warp.oracle import OracleWarp
 from .environment import SceneCache
-from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, environment_sample, first_hit,
+from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, emitter_id, environment_sample, first_hit,
                          is_emitter, mis_weight, mitsuba_emitter_sample)
 from .options import OracleOptions, document_parameters
 
@@ -140,6 +140,7 @@ class OracleEnvironment:
 
     def __init__(self, scene: mi.Scene, options: OracleOptions):
         self.emitter = scene.environment()
+        self.emitter_id = emitter_id(self.emitter) if self.emitter is not None else None
         self.warp = None
         others = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
         self.needs_emitter_sampling = True
@@ -156,7 +157,7 @@ class OracleEnvironment:
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""
-        return is_emitter(emitter, self.emitter)
+        return is_emitter(emitter, self.emitter_id)
 
     def oracle_nee(self, scene, u, si, bsdf, ctx, lobe, table, oracle, frac_e, frac_b):
         """One oracle sample of the environment (BSDF value x radiance / pdf),

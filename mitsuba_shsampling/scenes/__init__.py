@@ -128,4 +128,7 @@ def load_scene(path: str, envmap: str | None = None, mis_compensation: bool = Fa
     if undeclared:
         raise SceneError(f"{path} does not declare the parameter(s) {', '.join(undeclared)} "
                          f"(it declares: {', '.join(sorted(declared)) or 'none'})")
-    return mi.load_file(path, **{k: str(v) for k, v in wanted.items()})
+    # Loaded serially: in parallel, the objects' registry ids change from run to run, and
+    # with them the order in which Dr.Jit traces the BSDFs' code, so each run's kernels
+    # are new to Dr.Jit's kernel cache and compiled again (seconds of a first render).
+    return mi.load_file(path, parallel=False, **{k: str(v) for k, v in wanted.items()})
