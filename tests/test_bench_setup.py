@@ -1,0 +1,47 @@
+"""Specification: ``scripts/bench_setup.py`` measures what a first render costs before its
+passes, per method, with an empty and then a filled Dr.Jit kernel cache, and states the
+render time from which a faster-converging method has paid its extra set-up back."""
+
+import importlib.util
+import json
+import math
+import os
+import subprocess
+import sys
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCRIPT = os.path.join(REPO, "scripts", "bench_setup.py")
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("bench_setup", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_payback_is_where_the_remaining_time_at_e_times_the_efficiency_matches_the_whole_time():
+    payback = load_script().payback_time
+    # Error ~ 1 / (efficiency x time): (t - T) E = t.
+    t = payback(10.0, 1.5)
+    assert math.isclose((t - 10.0) * 1.5, t)
+    assert payback(0.0, 2.0) == 0.0
+    assert payback(3.0, 1.0) == math.inf and payback(3.0, 0.8) == math.inf
+
+
+def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_choice(tmp_path):
+    out = tmp_path / "setup.json"
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, SCRIPT, "--scene", "sphere_ggx010", "--res", "16", "--spp", "1",
+                           "--json", str(out)], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    runs = json.loads(out.read_text())["runs"]
+    assert [(r["method"], r["cache"]) for r in runs] == [
+        ("direct", "cold"), ("direct", "warm"), ("sh_direct", "cold"), ("sh_direct", "warm")]
+    for r in runs:
+        assert r["first_call_s"] > r["pass_s"] > 0
+        assert math.isclose(r["setup_s"], r["first_call_s"] - r["pass_s"])
+    sh = [r for r in runs if r["method"] == "sh_direct"]
+    assert all(0 < r["choice_s"] < r["first_call_s"] and r["pyramid_build_s"] > 0 for r in sh)
+    assert all(r["payback_s"] is None for r in runs if r["method"] == "direct")
+    assert "payback" in proc.stdout
