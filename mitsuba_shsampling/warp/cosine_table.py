@@ -38,7 +38,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..envmap.pyramid import block_offset, sum_pyramid_blocks
+from ..envmap.pyramid import aligned_floats, block_offset, sum_pyramid_blocks
 from ..grid import Cell, grid_coordinates
 from .env_leaves import finish_pdf, finish_sample
 from .hierarchy import Split, walk_pdf_absolute, walk_sample_absolute
@@ -173,7 +173,7 @@ class CosineTable:
         tables = (mixture_tables(pyramid.level_numpy(min(TABLE_DEPTH + 1, pyramid.depth)), normals, defensive_share)
                   if not pyramid.is_black
                   else np.full((len(world), 1 << TABLE_DEPTH, 1 << TABLE_DEPTH), 4.0**-TABLE_DEPTH))
-        self.buffer = mi.Float(sum_pyramid_blocks(tables).astype(np.float32).ravel())
+        self.buffer = aligned_floats(sum_pyramid_blocks(tables))
         self.nbytes = 4 * dr.width(self.buffer)
         dr.eval(self.buffer)
 
