@@ -32,8 +32,8 @@ def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
 def emitter_id(emitter: mi.Emitter) -> mi.UInt32:
     """The registry id of ``emitter`` as an opaque value, for :func:`is_emitter`.
 
-    Opaque, not a literal: Mitsuba loads a scene's objects in parallel, so their
-    registry ids change from run to run, and a literal id would make every kernel
+    Opaque, not a literal: Mitsuba loads a scene's objects in parallel by default, so
+    their registry ids change from run to run, and a literal id would make every kernel
     that tests it new to Dr.Jit's kernel cache in each process (compiled again:
     seconds of a first render's set-up)."""
     return dr.opaque(mi.UInt32, int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(emitter))[0]))

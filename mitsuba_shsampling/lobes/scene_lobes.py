@@ -180,9 +180,10 @@ class SceneLobes:
         self.has_unsupported_lobes = False
         #: Registry id -> BSDF, for the BSDFs with a product lobe (one table row each).
         self.bsdfs_with_lobes: dict[int, mi.BSDF] = {}
-        #: Registry id -> the perturbed normal of a frame-perturbing wrapper with a lobe.
-        self._perturbed: dict[int, PerturbedNormal] = {}
-        self._perturbed_ids: dict[int, mi.UInt32] = {}
+        #: Registry id -> (that id as an opaque value, the perturbed normal) of a frame-perturbing
+        #: wrapper with a lobe. Opaque, not a literal, for the reason of
+        #: :func:`~mitsuba_shsampling.integrators.estimators.emitter_id`.
+        self._perturbed: dict[int, tuple[mi.UInt32, PerturbedNormal]] = {}
         #: Registry ids of the BSDFs whose lobe is a clamped cosine (:func:`is_cosine_lobe`).
         self.cosine_ids: set[int] = set()
         for shape in scene.shapes():
@@ -218,8 +219,7 @@ class SceneLobes:
             self.fits[bsdf.id()] = params
             self.bsdfs_with_lobes[key] = bsdf
             if wrapper:
-                self._perturbed[key] = PerturbedNormal(bsdf)
-                self._perturbed_ids[key] = dr.opaque(mi.UInt32, key)
+                self._perturbed[key] = (dr.opaque(mi.UInt32, key), PerturbedNormal(bsdf))
             row_of_id[key] = len(rows)
             rows.append(params)
             if is_cosine_lobe(bsdf):
@@ -306,11 +306,8 @@ class SceneLobes:
             return normal
         bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
         with dr.suspend_grad():  # the lobe steers the sampler; it carries no derivatives
-            for key, perturbed in self._perturbed.items():
-                # The id as an opaque value, not a literal: ids change from run to run
-                # (Mitsuba loads a scene in parallel), and a literal would make the
-                # kernel new to Dr.Jit's kernel cache in each process.
-                mine = mi.Bool(active) & (bsdf_id == self._perturbed_ids[key])
+            for key_id, perturbed in self._perturbed.values():
+                mine = mi.Bool(active) & (bsdf_id == key_id)
                 normal = dr.select(mine, perturbed.local_normal(si, mine), normal)
         return normal
 
