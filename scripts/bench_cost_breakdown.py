@@ -218,7 +218,7 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
     leaf = Cell(pyramid.depth, leaf_iz, leaf_iphi)
 
     def leaf_placement():
-        return place_in_leaf(pyramid, leaf, leaf_t, walked_prob * p_leaf, walked_valid, u_product)
+        return place_in_leaf(pyramid, leaf, leaf_t, walked_prob * p_leaf, walked_valid)
 
     def product_sample():
         return warp.sample(coeffs, u_product, proxy)

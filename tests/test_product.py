@@ -453,6 +453,17 @@ def test_mixture_weights_are_absolute_children_sum_to_their_parent_at_every_leve
         iz, iphi = 2 * iz + dr.select(a, 1, 0), 2 * iphi + dr.select(b, 1, 0)
 
 
+def test_a_black_map_gives_samples_of_pdf_zero_with_a_finite_unit_direction():
+    """Nothing to place: every lane is invalid. Its sample carries no weight, and its direction
+    is still a unit vector (a shadow ray may be traced along it), not NaN."""
+    pyramid = EnvPyramid.from_latlong(np.zeros((32, 64, 3), dtype=np.float32), to_world=TILTED)
+    assert pyramid.is_black
+    count = 1 << 10
+    d, pdf = ProductWarp(pyramid).sample(per_lane_lobes(8, count, seed=9), uniform_samples(count, seed=10))
+    assert np.all(pdf.numpy() == 0.0)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(d.numpy()).reshape(3, -1), axis=0), 1.0, rtol=1e-6)
+
+
 def test_proxy_levels_pdf_integrates_to_one(sun_pyramid):
     warp = ProductWarp(sun_pyramid, sh_depth=3, proxy_depth=7)
     coeffs = opaque(zonal_lobe(phong_attenuation(20.0, 8), (0.5, -0.4, 0.77)))

@@ -184,7 +184,7 @@ class CosineTable:
     def sample(self, normal: mi.Vector3f, u: mi.Point2f):
         """Warp ``u`` in [0,1)^2 to a world direction; returns (direction, pdf)."""
         cell, t, prob, valid, _ = walk_sample_absolute(self.weights(normal), TABLE_DEPTH, u)
-        return finish_sample(self.pyramid, cell, t, prob, valid, u)
+        return finish_sample(self.pyramid, cell, t, prob, valid)
 
     def pdf(self, normal: mi.Vector3f, d: mi.Vector3f) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``."""

@@ -21,10 +21,11 @@ from .hierarchy import descend_pyramid_pdf, descend_pyramid_sample, leaf_density
 LEAF_EDGE_MARGIN = 2.0**-10
 
 
-def place_in_leaf(pyramid, leaf: Cell, t: mi.Point2f, prob, valid, u: mi.Point2f):
+def place_in_leaf(pyramid, leaf: Cell, t: mi.Point2f, prob, valid):
     """(world direction, solid-angle pdf) of the point ``t`` in [0,1)^2 of ``leaf``, chosen with
     probability ``prob``: by the bilinear interpolant of the pyramid's target at the leaf's
-    corners (:meth:`EnvPyramid.leaf_corners`); :func:`leaf_pdf` is its density."""
+    corners (:meth:`EnvPyramid.leaf_corners`); :func:`leaf_pdf` is its density. Lanes that are
+    not ``valid`` (no probability, a black map) get pdf 0 and the constant direction +z."""
     valid = valid & (not pyramid.is_black)
     # Keep the point off the leaf's edges: the float32 round trip
     # grid -> world (to_world) -> grid in pdf() moves a direction by
@@ -35,7 +36,10 @@ def place_in_leaf(pyramid, leaf: Cell, t: mi.Point2f, prob, valid, u: mi.Point2f
     t = dr.clip(t, LEAF_EDGE_MARGIN, 1.0 - LEAF_EDGE_MARGIN)
     z, phi, density = sample_leaf("bilinear", leaf, t, pyramid.leaf_corners)
     d = pyramid.world_from_grid(grid_direction(z, phi))
-    d = dr.select(valid, d, mi.warp.square_to_uniform_sphere(u))
+    # A sample of pdf 0 carries no weight: a constant, not a direction drawn for it (a
+    # uniform one cost every lane a sine and cosine, 5-8 % of the product warp's time,
+    # docs/MEASUREMENTS.md, "The pyramid's depth and the warp's memory").
+    d = dr.select(valid, d, mi.Vector3f(0.0, 0.0, 1.0))
     return d, dr.select(valid, prob * density / leaf.area, 0.0)
 
 
@@ -45,12 +49,12 @@ def leaf_pdf(pyramid, leaf: Cell, z, phi) -> mi.Float:
     return leaf_density("bilinear", leaf, z, phi, pyramid.leaf_corners) / leaf.area
 
 
-def finish_sample(pyramid, cell: Cell, t: mi.Point2f, prob, valid, u: mi.Point2f):
+def finish_sample(pyramid, cell: Cell, t: mi.Point2f, prob, valid):
     """(world direction, solid-angle pdf) of a walk that reached ``cell`` with probability
     ``prob`` and rescaled sample ``t``: the pyramid's descent to its finest level, then
     :func:`place_in_leaf`. :func:`finish_pdf` is its density."""
     leaf, t, p_leaf = descend_pyramid_sample(pyramid, cell, pyramid.depth, t)
-    return place_in_leaf(pyramid, leaf, t, prob * p_leaf, valid, u)
+    return place_in_leaf(pyramid, leaf, t, prob * p_leaf, valid)
 
 
 def finish_pdf(pyramid, cell: Cell, prob, z, phi) -> mi.Float:

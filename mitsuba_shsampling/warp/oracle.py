@@ -159,7 +159,7 @@ class OracleWarp:
         cell = Cell(self.level, dr.select(from_env, env_cell.iz, iz), dr.select(from_env, env_cell.iphi, iphi))
         t = dr.select(from_env, env_t, t)
         # Inside the cell both components follow the environment.
-        return finish_sample(self.pyramid, cell, t, self.cell_probability(f, table, cell, active), mi.Bool(active), u)
+        return finish_sample(self.pyramid, cell, t, self.cell_probability(f, table, cell, active), mi.Bool(active))
 
     def pdf(self, f: Lobe, table: OracleTable, d: mi.Vector3f, active: mi.Bool = True) -> mi.Float:
         """Density (per steradian) with which :meth:`sample` produces world direction ``d``;

@@ -331,7 +331,7 @@ class ProductWarp:
         cell, t, prob, valid, _ = walk_sample_absolute(provider, provider.walk_depth, u)
         # Below the product levels both parts of the mixture follow the
         # environment: its own pyramid finishes the walk.
-        return finish_sample(self.pyramid, cell, t, prob, valid, u)
+        return finish_sample(self.pyramid, cell, t, prob, valid)
 
     def _lobe_pdf(self, coeffs, d: mi.Vector3f, proxy: ProxyLobe | None = None) -> mi.Float:
         """Density of :meth:`_sample_lobe`."""
