@@ -45,7 +45,9 @@ def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: s
     import drjit as dr
     import mitsuba as mi
 
-    mi.set_variant("llvm_ad_rgb")
+    from mitsuba_shsampling.benchmarks import set_default_variant
+
+    set_default_variant()
     import mitsuba_shsampling  # noqa: F401  (registers the plugins)
     from mitsuba_shsampling.scenes import builtin_scenes, load_scene
 

@@ -63,7 +63,7 @@ class ProductEnvironment:
     def __init__(self, scene: mi.Scene, options: ProductOptions, carry_all: bool = False):
         self.scene = scene
         self.emitter = scene.environment()
-        self.emitter_id = emitter_id(self.emitter) if self.emitter is not None else None
+        self.emitter_id = emitter_id(self.emitter)
         self.pyramid = self.lobes = self.warp = self.warp_plain = None
         self.env_directions = self.env_plain = None
         self.strategies = self.choice = None

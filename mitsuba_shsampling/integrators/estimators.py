@@ -29,13 +29,16 @@ def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
     return si
 
 
-def emitter_id(emitter: mi.Emitter) -> mi.UInt32:
-    """The registry id of ``emitter`` as an opaque value, for :func:`is_emitter`.
+def emitter_id(emitter: mi.Emitter | None) -> mi.UInt32 | None:
+    """The registry id of ``emitter`` as an opaque value, for :func:`is_emitter` (None for
+    no emitter).
 
     Opaque, not a literal: Mitsuba loads a scene's objects in parallel by default, so
     their registry ids change from run to run, and a literal id would make every kernel
     that tests it new to Dr.Jit's kernel cache in each process (compiled again:
     seconds of a first render's set-up)."""
+    if emitter is None:
+        return None
     return dr.opaque(mi.UInt32, int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(emitter))[0]))
 
 

@@ -140,7 +140,7 @@ class OracleEnvironment:
 
     def __init__(self, scene: mi.Scene, options: OracleOptions):
         self.emitter = scene.environment()
-        self.emitter_id = emitter_id(self.emitter) if self.emitter is not None else None
+        self.emitter_id = emitter_id(self.emitter)
         self.warp = None
         others = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
         self.needs_emitter_sampling = True
