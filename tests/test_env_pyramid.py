@@ -23,9 +23,11 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.grid import Cell, cell_index, grid_coordinates, grid_direction  # noqa: E402
 from mitsuba_shsampling.envmap import DEFAULT_MAX_DEPTH, EnvPyramid, auto_depth  # noqa: E402
-from mitsuba_shsampling.envmap.pyramid import DIM_TOTAL, SUBTEXEL_LEVELS, leaf_records  # noqa: E402
+from mitsuba_shsampling.envmap.pyramid import (  # noqa: E402
+    DIM_TOTAL, LEVEL_TOLERANCE, SUBTEXEL_LEVELS, TRIM_FLOOR_DEPTH, _corner_radiance, coarse_leaf_excess, leaf_records)
 from mitsuba_shsampling.envmap.synthetic import (  # noqa: E402
-    constant_latlong, envmap_emitter, sun_sky_latlong)
+    constant_latlong, envmap_emitter, sun_sky_latlong, window_latlong)
+from mitsuba_shsampling.warp.env_leaves import finish_pdf  # noqa: E402
 
 from conftest import ENVMAPS_DIR
 
@@ -392,6 +394,72 @@ def test_depth_resolves_the_texels_plus_subtexel_levels_and_is_capped():
         EnvPyramid(envmap_emitter(random_latlong(4, 8)), max_depth=0)
 
 
+def test_a_finest_level_that_does_not_pay_is_dropped_and_a_subtexel_sun_keeps_it():
+    """1024 x 512 maps (built to depth 11): a smooth window light loses its finer levels down
+    to the trimming floor; a half-degree sun keeps the level finer than its texels."""
+    smooth = EnvPyramid(envmap_emitter(window_latlong(512, 1024)))
+    assert (smooth.depth, smooth.trimmed_levels) == (TRIM_FLOOR_DEPTH, DEFAULT_MAX_DEPTH - TRIM_FLOOR_DEPTH)
+    assert smooth.nbytes < 3 * 2**20
+    sun = EnvPyramid(envmap_emitter(sun_sky_latlong(512, 1024, sun_radius_deg=0.5)), mis_compensation=True)
+    assert (sun.depth, sun.trimmed_levels) == (DEFAULT_MAX_DEPTH, 0)
+    assert EnvPyramid(envmap_emitter(window_latlong(512, 1024)), level_tolerance=0).depth == DEFAULT_MAX_DEPTH
+    assert "trimmed_levels=2" in repr(smooth)
+
+
+def test_a_trimmed_pyramid_is_the_pyramid_built_at_its_depth():
+    """Dropping levels sums the finer cells and keeps every other corner: the same cell
+    integrals (to float rounding) and the same corner bytes as building at that depth."""
+    emitter = envmap_emitter(window_latlong(512, 1024))
+    trimmed = EnvPyramid(emitter)
+    built = EnvPyramid(emitter, max_depth=trimmed.depth, level_tolerance=0)
+    assert trimmed.depth == built.depth < DEFAULT_MAX_DEPTH
+    assert trimmed.total == pytest.approx(built.total, rel=1e-6)
+    np.testing.assert_allclose(trimmed.buffer.numpy(), built.buffer.numpy(), rtol=1e-5, atol=1e-9 * built.total)
+    records = [p.records.numpy().reshape(-1, 8) for p in (trimmed, built)]
+    np.testing.assert_allclose(records[0][:, :4], records[1][:, :4], rtol=1e-5, atol=1e-9 * built.total)
+    assert np.array_equal(records[0][:, 4:].view(np.uint32), records[1][:, 4:].view(np.uint32))
+
+
+def test_coarse_leaf_excess_is_the_second_moment_the_coarse_walk_adds_on_the_finest_cells():
+    """Against the sampler itself: the probability the depth-5 walk and bilinear leaves give each
+    depth-7 cell, integrated from their pdf (:func:`finish_pdf`), in sum t^2 / q - 1."""
+    image = random_latlong(16, 32, seed=3)
+    image[5, 11] = 400.0  # a one-texel sun, so that the leaves' slopes matter
+    fine = EnvPyramid.from_latlong(image, max_depth=7, level_tolerance=0)
+    coarse = EnvPyramid.from_latlong(image, max_depth=5, level_tolerance=0)
+    finest = fine.level_numpy(7).astype(np.float64)
+    luminance = image @ np.array([0.212671, 0.715160, 0.072169])
+    corners = np.maximum(_corner_radiance(luminance.astype(np.float32), 128), 0)
+    predicted = coarse_leaf_excess(finest, corners, 5)
+
+    points = 6  # midpoint rule inside each fine cell (the pdf is bilinear there, up to the grid's z)
+    n = 128 * points
+    z = -1 + (np.arange(n) + 0.5) * 2 / n
+    phi = (np.arange(n) + 0.5) * 2 * np.pi / n
+    zz, pp = np.meshgrid(z, phi, indexing="ij")
+    root = Cell(0, mi.UInt32(0), mi.UInt32(0))
+    pdf = finish_pdf(coarse, root, mi.Float(1.0), mi.Float(zz.ravel()), mi.Float(pp.ravel())).numpy()
+    q = pdf.reshape(128, points, 128, points).mean(axis=(1, 3)) * (4 * np.pi / 128**2)
+    assert q.sum() == pytest.approx(1.0, rel=1e-3)
+    t = finest / finest.sum()
+    brute = float(np.sum(t * t / q)) - 1
+    assert predicted > 10 * LEVEL_TOLERANCE  # the sun's slopes inside a texel: the level pays here
+    assert predicted == pytest.approx(brute, rel=0.02)
+    assert coarse_leaf_excess(finest, corners, 7) == 0.0  # the finest level against itself
+
+
+def test_coarse_leaf_excess_is_zero_for_a_constant_map_and_black_map():
+    finest = np.full((64, 64), 3.0)
+    assert abs(coarse_leaf_excess(finest, np.full((65, 65), 1.0), 4)) < 1e-12
+    assert coarse_leaf_excess(np.zeros((64, 64)), np.zeros((65, 65)), 4) == 0.0
+
+
+@pytest.mark.parametrize("tolerance", [-1e-3, float("nan"), float("inf"), True, "0.1"])
+def test_a_bad_level_tolerance_is_a_value_error(tolerance):
+    with pytest.raises(ValueError, match="level_tolerance"):
+        EnvPyramid.from_latlong(random_latlong(8, 16), level_tolerance=tolerance)
+
+
 def test_nan_inf_and_negative_texels_count_as_zero_with_one_warning():
     image = random_latlong(16, 32, seed=9)
     bad = image.copy()
@@ -465,10 +533,10 @@ def test_negative_scale_and_non_rotation_to_world_are_value_errors():
 def test_real_envmap_total_and_cells_match_emitter():
     path = sorted(glob.glob(os.path.join(ENVMAP_DIR, "*.hdr")))[0]
     emitter = mi.load_dict({"type": "envmap", "filename": path})
-    pyramid = EnvPyramid(emitter)
+    pyramid = EnvPyramid(emitter, level_tolerance=0)
     height, width = mi.traverse(emitter)["data"].shape[:2]
     texels = (height, width - 2)
-    assert pyramid.depth == auto_depth(*texels)
+    assert pyramid.depth == auto_depth(*texels) and pyramid.trimmed_levels == 0
     reference = reference_cell_integral(emitter, None, texels, -1.0, 1.0, 0.0, 2 * np.pi,
                                         theta_nodes=2, phi_nodes=1)
     assert pyramid.total == pytest.approx(reference, rel=1e-4)

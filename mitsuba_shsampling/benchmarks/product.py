@@ -44,7 +44,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..envmap import EnvPyramid
+from ..envmap import LEVEL_TOLERANCE, EnvPyramid
 from ..fidelity import product_fidelity
 from ..scenes import builtin_envmaps
 from ..sh.basis import sh_eval
@@ -100,6 +100,8 @@ class Settings:
     fidelity_lobes: int
     proxy_depth: int = DEFAULT_PROXY_DEPTH
     """Proxy levels down to this depth (0: none, and the SH depth from the band count)."""
+    level_tolerance: float = LEVEL_TOLERANCE
+    """The pyramid's ``level_tolerance`` (0: every level the map's resolution asks for)."""
 
     def warp(self, pyramid, sh_depth: int | None) -> ProductWarp:
         """The warp measured at ``sh_depth`` (None: the default for these proxy levels)."""
@@ -116,7 +118,7 @@ def load_maps(files: list[str] | None) -> list[tuple[str, mi.Emitter]]:
 
 
 def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
-    pyramid = EnvPyramid(emitter)
+    pyramid = EnvPyramid(emitter, level_tolerance=settings.level_tolerance)
     # Fidelity needs the pdf of every leaf: 4^12 = 17M at the default depth of
     # a 1k map. A pyramid capped at FIDELITY_DEPTH makes the same decisions in
     # the levels where the product's fidelity is lost (the coarse ones) and
@@ -186,7 +188,8 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
             rows.append(dict(
                 envmap=name, bands=n_bands, coefficients=n_bands * n_bands, phong_exponent=s,
                 sh_depth=warp.sh_depth_for(n_bands), proxy_depth=settings.proxy_depth,
-                depth=warp.depth, lanes=lanes,
+                depth=warp.depth, trimmed_levels=pyramid.trimmed_levels,
+                level_tolerance=settings.level_tolerance, lanes=lanes,
                 msamples_per_s=lanes / sample_s / 1e6,
                 pdf_msamples_per_s=lanes / pdf_s / 1e6,
                 mitsuba_envmap_msamples_per_s=lanes / mitsuba_s / 1e6,
@@ -224,14 +227,15 @@ def format_row(r: dict) -> str:
 
 def run(quick: bool = False, envmaps: list[str] | None = None, bands: list[int] | None = None,
         sh_depths: list[int] | None = None, lanes: int | None = None,
-        repeats: int | None = None, proxy_depth: int = DEFAULT_PROXY_DEPTH) -> list[dict]:
+        repeats: int | None = None, proxy_depth: int = DEFAULT_PROXY_DEPTH,
+        level_tolerance: float = LEVEL_TOLERANCE) -> list[dict]:
     """One record per (map, band count, sh_depth)."""
     settings = Settings(bands=tuple(bands or ([3, 10] if quick else [3, 5, 10, 15, 20])),
                         sh_depths=tuple(sh_depths) if sh_depths else None,
                         lanes=lanes or (1 << 18 if quick else 1 << 20),
                         repeats=repeats or (3 if quick else 5),
                         fidelity_lobes=1 if quick else len(FIDELITY_AXES),
-                        proxy_depth=proxy_depth)
+                        proxy_depth=proxy_depth, level_tolerance=level_tolerance)
     print(HEADER, flush=True)
     rows = []
     for name, emitter in load_maps(envmaps):
@@ -251,10 +255,12 @@ def main(argv: list[str] | None = None) -> None:
                         help="proxy levels down to this depth (0: none, sh_depth from the band count)")
     parser.add_argument("--lanes", type=int, help="lanes per call (default 2^20, quick 2^18)")
     parser.add_argument("--repeats", type=int, help="warm runs per timing (median)")
+    parser.add_argument("--level-tolerance", type=float, default=LEVEL_TOLERANCE,
+                        help="the pyramid's level_tolerance (0: keep the levels finer than the texels)")
     args = parser.parse_args(argv)
     set_default_variant()
     write_json(args.json, run(args.quick, args.envmap, args.bands, args.sh_depths, args.lanes, args.repeats,
-                              args.proxy_depth))
+                              args.proxy_depth, args.level_tolerance))
 
 
 if __name__ == "__main__":

@@ -72,6 +72,21 @@ sun-and-sky map a lot, one was best on 1k maps (docs/MEASUREMENTS.md,
 "Environment pyramid"); capping at depth 11 gives each map what it needs."""
 
 
+LEVEL_TOLERANCE = 2.5e-3
+"""How much a finest level must improve sampling to be kept: the relative second moment by
+which the level above, with its bilinear leaves, samples the finest cells worse than they
+are (:func:`coarse_leaf_excess`). Why this value: a level above 10 MB makes every walk
+that ends in it wait for memory (docs/MEASUREMENTS.md, "The pyramid's depth and the warp's
+memory": the product warp 28 % faster at depth 10 than at 11, a scene's pass 3-7 %), and an
+estimator's variance grows by the excess times ``S / (S - 1)`` (S its relative second
+moment), up to about 20x where a sun dominates a well-sampled pixel; 20 x 2.5e-3 = 5 %,
+about what the level saves in time."""
+
+TRIM_FLOOR_DEPTH = 9
+"""Trimming never takes a pyramid below this level: at depth 9 the whole pyramid is 2 MB
+and its walks are no longer waiting for memory, so a coarser one would save nothing."""
+
+
 def auto_depth(height: int, width: int, max_depth: int = DEFAULT_MAX_DEPTH) -> int:
     """Finest level D for an H x W lat-long map: 2^D >= 2^SUBTEXEL_LEVELS max(W, H),
     in [1, max_depth].
@@ -186,6 +201,65 @@ def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
         # phi_g = 2 pi (1 - u): phi-cell iphi is u-cell n - 1 - iphi.
         out[r0:r0 + _CHUNK] = u_cells[:, ::-1]
     return out
+
+
+def _bilinear_sub_weights(parts: int) -> tuple[np.ndarray, np.ndarray]:
+    """Integrals of the hats (1 - x) and x over [i / parts, (i + 1) / parts], i < parts."""
+    edges = np.linspace(0.0, 1.0, parts + 1)
+    rising = 0.5 * np.diff(edges ** 2)
+    return np.diff(edges) - rising, rising
+
+
+def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> float:
+    """How much worse level ``level``'s leaves sample the finest level than the finest
+    level's own cells: ``sum t^2 / q - 1`` over the finest cells, t a cell's share of the
+    total and q the probability that a walk to ``level`` and the bilinear placement in the
+    leaf (:meth:`EnvPyramid.leaf_corners`, corner floor included) give the cell.
+
+    This is the relative second moment an estimator gains from sampling the map at
+    ``level`` rather than at the finest level (0 when the bilinear leaves reproduce the finer
+    cells, e.g. a constant map). ``finest`` is (2^D, 2^D), ``corners`` (2^D + 1, 2^D + 1), both
+    of the sampling target, as :class:`EnvPyramid` builds them; a black map gives 0.
+    """
+    n = finest.shape[0]
+    parts = n >> level
+    total = float(finest.sum(dtype=np.float64))
+    if parts <= 1 or total <= 0:
+        return 0.0
+    m = n // parts
+    share = (finest.astype(np.float64) / total).reshape(m, parts, m, parts)
+    leaf_share = share.sum(axis=(1, 3))
+    c = corners[::parts, ::parts].astype(np.float64)
+    v00, v01, v10, v11 = c[:m, :m], c[:m, 1:], c[1:, :m], c[1:, 1:]
+    floor = 0.025 * (v00 + v01 + v10 + v11)
+    v00, v01, v10, v11 = v00 + floor, v01 + floor, v10 + floor, v11 + floor
+    quarter_sum = 0.25 * (v00 + v01 + v10 + v11)
+    lit = quarter_sum > 0
+    safe_sum = np.where(lit, quarter_sum, 1.0)
+    low, high = _bilinear_sub_weights(parts)
+    second_moment = 0.0
+    for i in range(parts):
+        for j in range(parts):
+            mass = (v00 * (low[i] * low[j]) + v01 * (low[i] * high[j])
+                    + v10 * (high[i] * low[j]) + v11 * (high[i] * high[j])) / safe_sum
+            # A leaf with black corners is placed uniformly.
+            q = leaf_share * np.where(lit, mass, 1.0 / parts ** 2)
+            t = share[:, i, :, j]
+            second_moment += float(np.sum(np.divide(t * t, q, out=np.zeros_like(t), where=q > 0)))
+    return second_moment - 1.0
+
+
+def trimmed_depth(finest: np.ndarray, corners: np.ndarray, tolerance: float,
+                  floor_depth: int = TRIM_FLOOR_DEPTH) -> int:
+    """The coarsest level >= ``floor_depth`` whose leaves sample the finest level within
+    ``tolerance`` (:func:`coarse_leaf_excess` below it); the finest level D if none is."""
+    depth = int(finest.shape[0]).bit_length() - 1
+    keep = depth
+    for level in range(depth - 1, floor_depth - 1, -1):
+        if not coarse_leaf_excess(finest, corners, level) < tolerance:
+            break
+        keep = level
+    return keep
 
 
 def sum_pyramid_blocks(finest: np.ndarray) -> np.ndarray:
@@ -351,15 +425,22 @@ class EnvPyramid:
     emitter: a Mitsuba ``envmap`` emitter (``TypeError`` otherwise).
     max_depth: cap on the finest level D (default :data:`DEFAULT_MAX_DEPTH`);
         D = min(ceil(log2(max(W, H))) + SUBTEXEL_LEVELS, max_depth), at least 1
-        (a 1024x512 map: D = 11, 39 MB, well under a second to build).
+        (a 1024x512 map: D = 11, 39 MB, well under a second to build), then
+        trimmed (below).
     mis_compensation: subtract the map's mean radiance from every finest cell
         (clamped at 0) before summing, as Mitsuba's ``envmap`` option of the
         same name does for its own sampler. ``total`` is then the integral of
         the compensated target; ``radiant_total`` is always the map's integral.
+    level_tolerance: the finest levels are dropped, down to :data:`TRIM_FLOOR_DEPTH`,
+        while the level above them samples their cells within this relative second
+        moment (:func:`coarse_leaf_excess`; default :data:`LEVEL_TOLERANCE`): a map
+        without features finer than its texels (most 1k photographs) is walked at
+        depth 10 in a quarter of the memory, a small sun keeps its subtexel level.
+        0 keeps every level; ``trimmed_levels`` says how many were dropped.
     """
 
     def __init__(self, emitter: mi.Emitter, max_depth: int | None = None,
-                 mis_compensation: bool = False) -> None:
+                 mis_compensation: bool = False, level_tolerance: float = LEVEL_TOLERANCE) -> None:
         name = emitter.class_name() if hasattr(emitter, "class_name") else type(emitter).__name__
         if name != "EnvironmentMapEmitter":
             raise TypeError(f"EnvPyramid needs an 'envmap' emitter, got {name}")
@@ -374,12 +455,13 @@ class EnvPyramid:
         data, sanitised = _sanitise_emitter_data(params, data)
         luminance = self._texel_luminance(data[:, 1:-1, :])
         self._build(luminance, float(dr.ravel(params["scale"])[0]), to_world, max_depth, start,
-                    mis_compensation, sanitised)
+                    mis_compensation, level_tolerance, sanitised)
 
     @classmethod
     def from_latlong(cls, image: np.ndarray, scale: float = 1.0,
                      to_world: mi.ScalarAffineTransform4f | None = None,
-                     max_depth: int | None = None, mis_compensation: bool = False) -> "EnvPyramid":
+                     max_depth: int | None = None, mis_compensation: bool = False,
+                     level_tolerance: float = LEVEL_TOLERANCE) -> "EnvPyramid":
         """Pyramid of a lat-long image in the ``envmap`` layout, without an emitter.
 
         ``image`` is (H, W) luminance or (H, W, 1|3) linear RGB, row 0 at the
@@ -395,7 +477,7 @@ class EnvPyramid:
         pyramid = cls.__new__(cls)
         to_world = mi.ScalarAffineTransform4f() if to_world is None else to_world
         pyramid._build(cls._texel_luminance(image), float(scale),
-                       mi.AffineTransform4f(to_world), max_depth, start, mis_compensation)
+                       mi.AffineTransform4f(to_world), max_depth, start, mis_compensation, level_tolerance)
         return pyramid
 
     # ------------------------------------------------------------------ build
@@ -413,10 +495,13 @@ class EnvPyramid:
 
     def _build(self, luminance: np.ndarray, scale: float, to_world: mi.AffineTransform4f,
                max_depth: int | None, start: float, mis_compensation: bool = False,
-               sanitised: int | None = None) -> None:
+               level_tolerance: float = LEVEL_TOLERANCE, sanitised: int | None = None) -> None:
         """``sanitised``: texels already set to 0 in the emitter (None: no emitter)."""
         if not np.isfinite(scale) or scale < 0:
             raise EnvmapError(f"the envmap's scale must be finite and >= 0, got {scale}")
+        if isinstance(level_tolerance, bool) or not isinstance(level_tolerance, numbers.Real) \
+                or not np.isfinite(level_tolerance) or level_tolerance < 0:
+            raise ValueError(f"EnvPyramid: level_tolerance must be a finite number >= 0, got {level_tolerance!r}")
         _check_to_world(to_world)
         bad = ~np.isfinite(luminance) | (luminance < 0)
         bad_count = int(np.count_nonzero(bad))
@@ -450,6 +535,15 @@ class EnvPyramid:
                 finest, compensated = sharpened.astype(np.float32), True
                 corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
 
+        built_depth = depth
+        depth = trimmed_depth(finest, corners, float(level_tolerance))
+        if depth < built_depth:
+            # The finest levels do not pay (LEVEL_TOLERANCE): their sums and every other
+            # corner are the coarser level's exactly (its corners are a subset of theirs).
+            parts = 1 << (built_depth - depth)
+            finest = finest.astype(np.float64).reshape(1 << depth, parts, 1 << depth, parts).sum(axis=(1, 3))
+            corners = np.ascontiguousarray(corners[::parts, ::parts])
+
         blocks = sum_pyramid_blocks(finest)
         # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
         # leaf records with the corners they need (see :func:`leaf_records`).
@@ -459,6 +553,8 @@ class EnvPyramid:
 
         #: Finest level D; levels 0..D exist.
         self.depth: int = depth
+        #: Levels built below D and dropped because they did not pay (LEVEL_TOLERANCE).
+        self.trimmed_levels: int = built_depth - depth
         #: Sum of the pyramid's root (the sampling target's integral), float64.
         self.total: float = float(blocks[0])
         #: Integral of scale * luminance over the sphere (radiance x sr).
@@ -564,5 +660,6 @@ class EnvPyramid:
 
     def __repr__(self) -> str:
         height, width = self.texel_resolution
-        return (f"EnvPyramid[texels={height}x{width}, depth={self.depth}, total={self.total:.6g}, "
+        return (f"EnvPyramid[texels={height}x{width}, depth={self.depth}, trimmed_levels={self.trimmed_levels}, "
+                f"total={self.total:.6g}, "
                 f"nbytes={self.nbytes}, build_time_s={self.build_time_s:.3f}]")
