@@ -69,7 +69,8 @@ bilinear between texels and the leaves are sampled uniformly, so a one-texel
 sun (a two-texel hat after interpolation) falls linearly across a texel-sized
 leaf: 1/3 relative variance per sample. Two levels helped a 512-wide
 sun-and-sky map a lot, one was best on 1k maps (docs/MEASUREMENTS.md,
-"Environment pyramid"); capping at depth 11 gives each map what it needs."""
+"Environment pyramid"); capping at depth 11 gives each map what it needs, and
+:data:`LEVEL_TOLERANCE` drops them again where the map has no detail for them."""
 
 
 LEVEL_TOLERANCE = 2.5e-3
