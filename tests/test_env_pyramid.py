@@ -455,9 +455,15 @@ def test_coarse_leaf_excess_is_zero_for_a_constant_map_and_black_map():
 
 
 @pytest.mark.parametrize("tolerance", [-1e-3, float("nan"), float("inf"), True, "0.1"])
-def test_a_bad_level_tolerance_is_a_value_error(tolerance):
+def test_a_bad_level_tolerance_is_a_value_error_before_the_emitter_is_touched(tolerance):
     with pytest.raises(ValueError, match="level_tolerance"):
         EnvPyramid.from_latlong(random_latlong(8, 16), level_tolerance=tolerance)
+    image = random_latlong(8, 16)
+    image[2, 3] = np.nan
+    emitter = envmap_emitter(image)
+    with pytest.raises(ValueError, match="level_tolerance"):
+        EnvPyramid(emitter, level_tolerance=tolerance)
+    assert np.isnan(mi.traverse(emitter)["data"].numpy()).any()  # not sanitised by a failed build
 
 
 def test_nan_inf_and_negative_texels_count_as_zero_with_one_warning():

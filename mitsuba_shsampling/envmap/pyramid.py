@@ -250,6 +250,14 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
     return second_moment - 1.0
 
 
+def check_level_tolerance(tolerance) -> float:
+    """``tolerance`` as a float if it is a finite real number >= 0, else ``ValueError``."""
+    if isinstance(tolerance, bool) or not isinstance(tolerance, numbers.Real) \
+            or not np.isfinite(tolerance) or tolerance < 0:
+        raise ValueError(f"EnvPyramid: level_tolerance must be a finite number >= 0, got {tolerance!r}")
+    return float(tolerance)
+
+
 def trimmed_depth(finest: np.ndarray, corners: np.ndarray, tolerance: float,
                   floor_depth: int = TRIM_FLOOR_DEPTH) -> int:
     """The coarsest level >= ``floor_depth`` whose leaves sample the finest level within
@@ -442,6 +450,7 @@ class EnvPyramid:
 
     def __init__(self, emitter: mi.Emitter, max_depth: int | None = None,
                  mis_compensation: bool = False, level_tolerance: float = LEVEL_TOLERANCE) -> None:
+        level_tolerance = check_level_tolerance(level_tolerance)  # before the emitter's data is touched
         name = emitter.class_name() if hasattr(emitter, "class_name") else type(emitter).__name__
         if name != "EnvironmentMapEmitter":
             raise TypeError(f"EnvPyramid needs an 'envmap' emitter, got {name}")
@@ -469,6 +478,7 @@ class EnvPyramid:
         local +Y pole, column x centred at u = (x + 0.5)/W. Equals the pyramid
         of ``envmap`` emitter built from the same image, scale and to_world.
         """
+        level_tolerance = check_level_tolerance(level_tolerance)
         image = np.asarray(image)
         if image.ndim == 2:
             image = image[..., None]
@@ -500,9 +510,6 @@ class EnvPyramid:
         """``sanitised``: texels already set to 0 in the emitter (None: no emitter)."""
         if not np.isfinite(scale) or scale < 0:
             raise EnvmapError(f"the envmap's scale must be finite and >= 0, got {scale}")
-        if isinstance(level_tolerance, bool) or not isinstance(level_tolerance, numbers.Real) \
-                or not np.isfinite(level_tolerance) or level_tolerance < 0:
-            raise ValueError(f"EnvPyramid: level_tolerance must be a finite number >= 0, got {level_tolerance!r}")
         _check_to_world(to_world)
         bad = ~np.isfinite(luminance) | (luminance < 0)
         bad_count = int(np.count_nonzero(bad))
@@ -537,7 +544,7 @@ class EnvPyramid:
                 corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
 
         built_depth = depth
-        depth = trimmed_depth(finest, corners, float(level_tolerance))
+        depth = trimmed_depth(finest, corners, check_level_tolerance(level_tolerance))
         if depth < built_depth:
             # The finest levels do not pay (LEVEL_TOLERANCE): their sums and every other
             # corner are the coarser level's exactly (its corners are a subset of theirs).
