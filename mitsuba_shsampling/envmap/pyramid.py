@@ -232,7 +232,7 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
     leaf_share = share.sum(axis=(1, 3))
     c = corners[::parts, ::parts].astype(np.float64)
     v00, v01, v10, v11 = c[:m, :m], c[:m, 1:], c[1:, :m], c[1:, 1:]
-    floor = 0.025 * (v00 + v01 + v10 + v11)
+    floor = CORNER_FLOOR * (v00 + v01 + v10 + v11)
     v00, v01, v10, v11 = v00 + floor, v01 + floor, v10 + floor, v11 + floor
     quarter_sum = 0.25 * (v00 + v01 + v10 + v11)
     lit = quarter_sum > 0
@@ -321,6 +321,10 @@ LEAF_RECORD_FLOATS = 8
 
 CORNER_LEVELS = 255
 """A leaf's corner values are stored as bytes, in units of their largest over this."""
+
+CORNER_FLOOR = 0.025
+"""Share of the four corner values' sum added to each before the bilinear placement (a tenth
+of their mean): :meth:`EnvPyramid.leaf_corners` and :func:`coarse_leaf_excess` alike."""
 
 
 def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
@@ -544,7 +548,7 @@ class EnvPyramid:
                 corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
 
         built_depth = depth
-        depth = trimmed_depth(finest, corners, check_level_tolerance(level_tolerance))
+        depth = trimmed_depth(finest, corners, level_tolerance)  # checked by the constructors
         if depth < built_depth:
             # The finest levels do not pay (LEVEL_TOLERANCE): their sums and every other
             # corner are the coarser level's exactly (its corners are a subset of theirs).
@@ -636,7 +640,7 @@ class EnvPyramid:
         child = 2 * (iz & 1) + (iphi & 1)
         word = dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, self.records, LEAF_RECORD_FLOATS * record + 4 + child))
         values = [mi.Float((word >> shift) & 0xFF) for shift in (0, 8, 16, 24)]
-        floor = 0.025 * ((values[0] + values[1]) + (values[2] + values[3]))
+        floor = CORNER_FLOOR * ((values[0] + values[1]) + (values[2] + values[3]))
         return [v + floor for v in values]
 
     def level_numpy(self, k: int) -> np.ndarray:
