@@ -43,6 +43,7 @@ import mitsuba as mi
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import bench_cost_breakdown as breakdown  # noqa: E402
+from mitsuba_shsampling.sh.zonal import RotatedZonalLobes  # noqa: E402
 
 #: The modules of the product walk loaded from the base revision: module -> its folder in the package.
 BASE_MODULES = {"product": "warp", "hierarchy": "warp", "hsw": "warp", "proxy_lobe": "warp",
@@ -96,6 +97,8 @@ def main() -> None:
         pyramid = base_pyramid.EnvPyramid(env.emitter, mis_compensation=env.warp.pyramid.mis_compensation)
         versions = {"base": (base_product.ProductWarp(pyramid, **options), base_proxy.ProxyLobe),
                     "tree": (env.warp, None)}
+        # Revisions before the factored lobes (RotatedZonalLobes) take coefficients only.
+        base_takes_factored = hasattr(base_product, "RotatedZonalLobes")
 
         def kernel(version: str, walk: str):
             warp, proxy_type = versions[version]
@@ -104,7 +107,10 @@ def main() -> None:
             # and a base revision's proxy type takes the fields it has.
             fields = tuple(lobe.proxy._replace(cosine_only=False))
             proxy = proxy_type(*fields[:len(proxy_type._fields)]) if proxy_type else lobe.proxy._replace(cosine_only=False)
-            return warp.sample(lobe.coeffs, u, proxy) if walk == "sample" else warp.pdf(lobe.coeffs, d, proxy)
+            coeffs = lobe.coeffs
+            if proxy_type and not base_takes_factored and isinstance(coeffs, RotatedZonalLobes):
+                coeffs = coeffs.coefficients()
+            return warp.sample(coeffs, u, proxy) if walk == "sample" else warp.pdf(coeffs, d, proxy)
 
         walks = ("sample", "pdf")
         times = {(v, w): [] for v in versions for w in walks}

@@ -114,8 +114,9 @@ def evaluated(*values):
 
 
 def lobe_arrays(lobe) -> list:
-    """The arrays of a :class:`~mitsuba_shsampling.integrators.environment.LaneLobe`."""
-    return [*lobe.coeffs, *tuple(lobe.proxy)]
+    """The arrays of a :class:`~mitsuba_shsampling.integrators.environment.LaneLobe`
+    (its lobes are a dataclass, which Dr.Jit traverses)."""
+    return [lobe.coeffs, *tuple(lobe.proxy)]
 
 
 # ------------------------------------------------------------------ the lanes

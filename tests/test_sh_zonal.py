@@ -10,10 +10,11 @@ from scipy.special import gammaln
 
 mi.set_variant("llvm_ad_rgb")
 
+from mitsuba_shsampling.sh.integrals import contract_z, legendre_antiderivatives  # noqa: E402
 from mitsuba_shsampling.sh.projection import project  # noqa: E402
 from mitsuba_shsampling.sh.zonal import (  # noqa: E402
-    clamped_cosine_attenuation, phong_attenuation, zonal_coefficients_z, zonal_profile,
-    zonal_to_sh)
+    RotatedZonalLobes, clamped_cosine_attenuation, phong_attenuation, rotate_zonal_lobes,
+    zonal_coefficients_z, zonal_profile, zonal_to_sh)
 
 
 def phong_attenuation_closed_form(s: float, l: int) -> float:
@@ -137,3 +138,60 @@ def test_invalid_band_count_raises(bad):
 def test_zonal_to_sh_rejects_more_bands_than_the_basis_supports():
     with pytest.raises(ValueError):
         zonal_to_sh([1.0] * 33, mi.Vector3f(0, 0, 1))
+
+
+# ------------------------------------------------ rotated zonal lobes, factored
+
+def two_rotated_lobes(count: int, seed: int):
+    """A Phong lobe (8 bands, per-lane exponent) and a 3-band clamped cosine, each about
+    its own random per-lane axis (one lane's axis zero, one's NaN), as the integrators
+    build them; returns (attenuation, axis) pairs."""
+    rng = np.random.default_rng(seed)
+    mirror, normal = (rng.normal(size=(3, count)).astype(np.float32) for _ in range(2))
+    mirror[:, 0], normal[:, 1] = 0.0, np.nan
+    s = mi.Float(rng.uniform(1.0, 60.0, count).astype(np.float32))
+    weight = mi.Float(rng.uniform(0.0, 1.0, count).astype(np.float32))
+    return [(phong_attenuation(s, 8), mi.Vector3f(mirror)),
+            ([weight * lam for lam in clamped_cosine_attenuation(3)], mi.Vector3f(normal))]
+
+
+def summed_coefficients(lobes) -> np.ndarray:
+    total = None
+    for attenuation, axis in lobes:
+        coeffs = np.array([c.numpy() for c in zonal_to_sh(attenuation, axis)])
+        total = coeffs if total is None else total + np.pad(coeffs, ((0, len(total) - len(coeffs)), (0, 0)))
+    return total
+
+
+def test_factored_lobes_expand_to_the_sum_of_the_turned_lobes():
+    lobes = two_rotated_lobes(64, seed=1)
+    factored = rotate_zonal_lobes(lobes)
+    assert factored.n_bands == 8
+    got = np.array([c.numpy() for c in factored.coefficients()])
+    np.testing.assert_allclose(got, summed_coefficients(lobes), rtol=1e-5, atol=1e-6)
+    # A lobe about a zero or NaN axis is 0, as zonal_to_sh's: lane 0 holds the cosine alone.
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got[:9, 0], summed_coefficients(lobes[1:])[:, 0], rtol=1e-5, atol=1e-7)
+    assert np.all(got[9:, 0] == 0)
+    np.testing.assert_array_equal(np.array([c.numpy() for c in factored.coefficients(2)]), got[:4])
+
+
+def test_factored_contraction_over_l_equals_the_contraction_of_the_coefficients():
+    """What the SH cell integrals need per level: A[m] = sum_l f_l^m I_l^|m| over a z range."""
+    lobes = two_rotated_lobes(64, seed=2)
+    factored = rotate_zonal_lobes(lobes)
+    rng = np.random.default_rng(3)
+    z0, z1 = np.sort(rng.uniform(-1.0, 1.0, (2, 64)).astype(np.float32), axis=0)
+    lo, hi = legendre_antiderivatives(mi.Float(z0), 7), legendre_antiderivatives(mi.Float(z1), 7)
+    zint = {k: hi[k] - lo[k] for k in hi}
+    expected = contract_z(factored.coefficients(), zint, 7)
+    for a, b in zip(factored.contract_z(zint, 7), expected):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-5, atol=1e-6)
+
+
+def test_zero_factored_lobes_have_the_structure_of_built_ones():
+    zeros = RotatedZonalLobes.zeros([8, 3])
+    built = rotate_zonal_lobes(two_rotated_lobes(4, seed=4))
+    for field in ("legendre", "azimuth_cos", "azimuth_sin"):
+        assert [len(v) for v in getattr(zeros, field)] == [len(v) for v in getattr(built, field)]
+    assert all(np.all(c.numpy() == 0) for c in zeros.coefficients())

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..scene_materials import registry_id
 from ..sh.basis import MAX_ORDER
-from ..sh.zonal import clamped_cosine_attenuation, phong_attenuation, zonal_to_sh
+from ..sh.zonal import RotatedZonalLobes, clamped_cosine_attenuation, phong_attenuation, rotate_zonal_lobes
 from ..warp.proxy_lobe import ProxyLobe
 from .fit import fit_two_lobe, mirror_quadrature, tabulate_lobe, uv_positions, varies_over_surface
 from .perturbed_frames import FRAME_WRAPPERS, PerturbedNormal, nested_bsdf
@@ -363,16 +363,21 @@ class SceneLobes:
         ``use_product`` is False for delta, unsupported and invalid lanes, whose
         coefficients are zero. Traceable: no host round trip, one kernel.
         """
-        coeffs, _, use_product = self.coefficients_and_proxy(si, grid_from_world, active)
-        return coeffs, use_product
+        lobes, _, use_product = self.coefficients_and_proxy(si, grid_from_world, active)
+        return (lobes.coefficients() if isinstance(lobes, RotatedZonalLobes) else lobes), use_product
 
     def coefficients_and_proxy(self, si: mi.SurfaceInteraction3f,
                                grid_from_world: Callable[[mi.Vector3f], mi.Vector3f],
                                active: mi.Bool = True, cosine_tables: bool = False,
-                               sh_lobes: bool = True) -> tuple[list, ProxyLobe | None, mi.Bool]:
-        """:meth:`coefficients`, and the same proxy in closed form
-        (:class:`~mitsuba_shsampling.warp.proxy_lobe.ProxyLobe`, with the
-        fitted exponent before the band-limit clamp; None without product lobes).
+                               sh_lobes: bool = True) -> tuple[RotatedZonalLobes | list, ProxyLobe | None, mi.Bool]:
+        """:meth:`coefficients` in the factored form that the product warps take
+        (:class:`~mitsuba_shsampling.sh.zonal.RotatedZonalLobes`: the Phong and the
+        diffuse lobe, each about its axis; its contractions cost about half of the
+        expanded coefficients', and it needs no n^2 products to build), and the same
+        proxy in closed form (:class:`~mitsuba_shsampling.warp.proxy_lobe.ProxyLobe`,
+        with the fitted exponent before the band-limit clamp; None without product
+        lobes). ``[]`` instead of the lobes where no lane has any (no product lobes in
+        the scene, or every lane ``cosine_only``).
 
         With ``cosine_tables`` (the product warp samples clamped cosines from its
         tables), the lanes of a cosine lobe (:func:`is_cosine_lobe`) are marked
@@ -400,16 +405,19 @@ class SceneLobes:
         normal = grid_from_world(si.to_world(local_normal * side))
         mirror = grid_from_world(si.to_world(dr.fma(local_normal, 2.0 * cos_view, -wi)))
 
+        cosine = clamped_cosine_attenuation(min(DIFFUSE_BANDS, self.n_bands))
+
         def rotated_lobes(w_d, w_g, s, normal, mirror):
-            glossy = zonal_to_sh([w_g * lam for lam in phong_attenuation(s, self.n_bands)], mirror)
-            cosine = clamped_cosine_attenuation(DIFFUSE_BANDS)
-            diffuse = zonal_to_sh([w_d * (lam / cosine[0]) for lam in cosine], normal)
-            return [c + (diffuse[i] if i < len(diffuse) else 0.0) for i, c in enumerate(glossy)]
+            return rotate_zonal_lobes([([w_g * lam for lam in phong_attenuation(s, self.n_bands)], mirror),
+                                       ([w_d * (lam / cosine[0]) for lam in cosine], normal)])
+
+        def no_lobes(*_):
+            return RotatedZonalLobes.zeros([self.n_bands, len(cosine)])
 
         # A symbolic branch: packets without a product lane skip the basis evaluation.
         coeffs = [] if cosine_only is True else dr.if_stmt(
             args=(w_d, w_g, s, normal, mirror), cond=mi.Bool(use_product) & ~mi.Bool(cosine_only),
-            true_fn=rotated_lobes, false_fn=lambda *_: [mi.Float(0.0) for _ in range(self.n_bands**2)])
+            true_fn=rotated_lobes, false_fn=no_lobes)
         proxy = ProxyLobe(normal, dr.select(use_product, w_d, 0.0), mirror,
                           dr.select(use_product, w_g, 0.0), s_fitted, cosine_only)
         return coeffs, proxy, use_product

@@ -16,13 +16,15 @@ by all lanes) or Dr.Jit Floats (one value per lane).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 
-from .basis import sh_eval, sh_index
+from .basis import azimuthal_powers, reduced_legendre, sh_eval, sh_index
 
 PHONG_EXPONENT_MAX = 1e30
 """Per-lane Phong exponents are clamped to this value: float32 keeps
@@ -134,6 +136,124 @@ def zonal_to_sh(attenuation, axis) -> list:
     for l in range(n):
         coeffs.extend(attenuation[l] * y for y in basis[l * l:(l + 1) ** 2])
     return coeffs
+
+
+def triangle_index(l: int, m: int) -> int:
+    """Index of (l, m), 0 <= m <= l, in a row-major triangle of per-(l, |m|) values."""
+    return l * (l + 1) // 2 + m
+
+
+@dataclasses.dataclass
+class RotatedZonalLobes:
+    """A sum of zonal lobes, each turned to its own per-lane axis, in factored form.
+
+    Lobe k (attenuation lambda_l, l < n_k, unit axis a) has the coefficients
+    f_l^m = lambda_l y_l^m(a) (:func:`zonal_to_sh`), which factor as
+
+        f_l^m = g_l^|m| t_m,   g_l^m = lambda_l Qb_l^m(a_z),
+        t_0 = 1,  t_m = sqrt(2) Re (a_x + i a_y)^m,  t_-m = sqrt(2) Im (a_x + i a_y)^m
+
+    (Qb the reduced Legendre functions of :func:`~.basis.reduced_legendre`). So a
+    contraction over l at fixed m, which the SH cell integrals need once per
+    level (:meth:`contract_z`), costs n(n+1)/2 multiply-adds and 2n - 1 products
+    per lobe instead of n^2 multiply-adds over the expanded coefficients, and
+    building the lobe costs no n^2 products. :meth:`coefficients` expands it.
+
+    Built by :func:`rotate_zonal_lobes`. Fields, one entry per lobe (Dr.Jit
+    Floats in a dataclass: a value that symbolic branches and loops can carry):
+    """
+
+    legendre: tuple
+    """g_l^m, 0 <= m <= l < n_k, at :func:`triangle_index` (l, m)."""
+    azimuth_cos: tuple
+    """t_m, m = 1 .. n_k - 1."""
+    azimuth_sin: tuple
+    """t_-m, m = 1 .. n_k - 1."""
+
+    @classmethod
+    def zeros(cls, band_counts) -> "RotatedZonalLobes":
+        """Lobes of ``band_counts`` bands that are 0 everywhere (all fields 0)."""
+        def zero(count):
+            return [mi.Float(0.0) for _ in range(count)]
+        return cls(tuple(zero(triangle_index(n, 0)) for n in band_counts),
+                   tuple(zero(n - 1) for n in band_counts), tuple(zero(n - 1) for n in band_counts))
+
+    @property
+    def n_bands(self) -> int:
+        """Bands of the sum: those of its widest lobe."""
+        return max(len(c) for c in self.azimuth_cos) + 1
+
+    def coefficients(self, n_bands: int | None = None) -> list:
+        """The sum's SH coefficients f_l^m (index l(l+1)+m), for its first ``n_bands``
+        bands (all by default)."""
+        n = self.n_bands if n_bands is None else min(n_bands, self.n_bands)
+        out = [0.0] * (n * n)
+        for g, cos, sin in zip(self.legendre, self.azimuth_cos, self.azimuth_sin):
+            for l in range(min(n, len(cos) + 1)):
+                out[sh_index(l, 0)] = out[sh_index(l, 0)] + g[triangle_index(l, 0)]
+                for m in range(1, l + 1):
+                    out[sh_index(l, m)] = out[sh_index(l, m)] + g[triangle_index(l, m)] * cos[m - 1]
+                    out[sh_index(l, -m)] = out[sh_index(l, -m)] + g[triangle_index(l, m)] * sin[m - 1]
+        return [c + 0 * self.legendre[0][0] for c in out]  # Floats, also where no lobe reaches
+
+    def contract_z(self, zint: dict, order: int) -> list:
+        """A[m] = sum_l f_l^m zint[l, |m|] for m = -order..order (index m + order), as
+        :func:`~.integrals.contract_z` of :meth:`coefficients`, in factored form: per lobe
+        B[m] = sum_l g_l^m zint[l, m] once for both signs of m, then A[+-m] += t_+-m B[m]."""
+        out = [None] * (2 * order + 1)
+
+        def add(i, factor, value):
+            """out[i] += factor x value (factor None: 1), one multiply-add where out[i] exists."""
+            if out[i] is None:
+                out[i] = value if factor is None else factor * value
+            else:
+                out[i] = out[i] + value if factor is None else dr.fma(factor, value, out[i])
+
+        for g, cos, sin in zip(self.legendre, self.azimuth_cos, self.azimuth_sin):
+            top = min(order, len(cos))
+            for m in range(top + 1):
+                acc = g[triangle_index(m, m)] * zint[m, m]
+                for l in range(m + 1, top + 1):
+                    acc = dr.fma(g[triangle_index(l, m)], zint[l, m], acc)
+                if m == 0:
+                    add(order, None, acc)
+                else:
+                    add(order + m, cos[m - 1], acc)
+                    add(order - m, sin[m - 1], acc)
+        zero = 0 * self.legendre[0][0]
+        return [zero if a is None else a for a in out]
+
+
+def rotate_zonal_lobes(lobes) -> RotatedZonalLobes:
+    """The sum of zonal lobes ``lobes`` = [(attenuation, axis), ...], each turned to its
+    per-lane axis, in the factored form of :class:`RotatedZonalLobes`.
+
+    ``attenuation``: n_k per-band factors (floats or Dr.Jit Floats), as for
+    :func:`zonal_to_sh`; ``axis`` (mi.Vector3f): the lobe's axis in the SH frame,
+    normalised here; a zero or non-finite axis gives that lobe all-zero
+    coefficients, as :func:`zonal_to_sh` does. Costs the basis evaluation's
+    Legendre and azimuth recurrences and n(n+1)/2 products per lobe.
+    """
+    legendre, cos_terms, sin_terms = [], [], []
+    for attenuation, axis in lobes:
+        n = _check_band_count(len(attenuation))
+        norm2 = dr.squared_norm(axis)
+        valid = dr.isfinite(norm2) & (norm2 > 0)
+        inv = dr.rsqrt(dr.select(valid, norm2, 1))
+        # As in sh_eval: an invalid axis becomes the zero vector, so every m != 0 term
+        # vanishes through (x + i y)^m, and its m = 0 terms are masked.
+        x, y, z = (dr.select(valid, v * inv, 0) for v in (axis.x, axis.y, axis.z))
+        q = reduced_legendre(z, n - 1)
+        c, s = azimuthal_powers(x, y, n - 1)
+        g = [None] * triangle_index(n, 0)
+        for l in range(n):
+            g[triangle_index(l, 0)] = dr.select(valid, attenuation[l] * q[l, 0], 0)
+            for m in range(1, l + 1):
+                g[triangle_index(l, m)] = attenuation[l] * q[l, m]
+        legendre.append(g)
+        cos_terms.append([math.sqrt(2.0) * c[m] for m in range(1, n)])
+        sin_terms.append([math.sqrt(2.0) * s[m] for m in range(1, n)])
+    return RotatedZonalLobes(tuple(legendre), tuple(cos_terms), tuple(sin_terms))
 
 
 def legendre_table(z: np.ndarray, n_bands: int) -> np.ndarray:

@@ -40,6 +40,7 @@ from ..grid import Cell, child_phi_centres, grid_coordinates, grid_direction
 from ..sh.basis import as_coefficients, bands_of, sh_eval_sum_on_circle
 from ..sh.integrals import (constant_antiderivatives, contract_phi, contract_z, legendre_antiderivatives,
                             phi_integrals_centred)
+from ..sh.zonal import RotatedZonalLobes
 from .hierarchy import Split, check_depth, check_leaf, leaf_density, sample_leaf, walk_pdf, walk_sample
 
 DEFAULT_DEPTH = 8
@@ -109,6 +110,10 @@ class SHCellSplit(NamedTuple):
 class SHCellWeights:
     """Quadtree weight provider: integrals of an SH expansion over the four children.
 
+    The expansion is a coefficient list or, as the integrators build their lobes,
+    :class:`~mitsuba_shsampling.sh.zonal.RotatedZonalLobes`, whose contractions
+    over l cost about half (:func:`lobe_bands` gives the band count of either).
+
     State (:class:`SHCellState`): the antiderivative row at the cell's lower z
     bound, the z-contraction A[m] of the whole cell and cos/sin of the cell's
     phi centre.
@@ -123,14 +128,20 @@ class SHCellWeights:
     deeper level needs them (Dr.Jit traces nothing else).
     """
 
-    def __init__(self, coeffs: list):
+    def __init__(self, coeffs):
         self.coeffs = coeffs
-        self.order = bands_of(coeffs) - 1
+        self.order = lobe_bands(coeffs) - 1
         # Root rows are constants: evaluate them once in float64 on the host.
         lo = constant_antiderivatives(-1.0, self.order)
         hi = constant_antiderivatives(1.0, self.order)
         self._root_lo = {k: mi.Float(v) for k, v in lo.items()}
-        self._root_cell = contract_z(coeffs, {k: hi[k] - lo[k] for k in hi}, self.order)
+        self._root_cell = self._contract_z({k: hi[k] - lo[k] for k in hi})
+
+    def _contract_z(self, zint: dict) -> list:
+        """A[m] = sum_l f_l^m zint[l, |m|]: factored for rotated zonal lobes."""
+        if isinstance(self.coeffs, RotatedZonalLobes):
+            return self.coeffs.contract_z(zint, self.order)
+        return contract_z(self.coeffs, zint, self.order)
 
     def root(self) -> SHCellState:
         # The root spans [0, 2 pi): centre pi.
@@ -159,7 +170,7 @@ class SHCellWeights:
             h = math.pi / 2 ** (cell.level + 1)
             left = phi_integrals_centred(centres[0], centres[1], h, self.order)
             right = phi_integrals_centred(centres[2], centres[3], h, self.order)
-        a_lo = contract_z(self.coeffs, z_lo, self.order)
+        a_lo = self._contract_z(z_lo)
         a_hi = [ac - al for ac, al in zip(state.a_cell, a_lo)]
         weights = (contract_phi(a_lo, left), contract_phi(a_lo, right),
                    contract_phi(a_hi, left), contract_phi(a_hi, right))
@@ -172,6 +183,17 @@ class SHCellWeights:
             [dr.select(a, hi, lo) for lo, hi in zip(pending.a_lo, pending.a_hi)],
             dr.select(b, cos_r, cos_l),
             dr.select(b, sin_r, sin_l))
+
+
+def lobe_bands(lobe) -> int:
+    """Bands of an SH lobe given as coefficients or as :class:`RotatedZonalLobes`."""
+    return lobe.n_bands if isinstance(lobe, RotatedZonalLobes) else bands_of(lobe)
+
+
+def as_lobe(lobe):
+    """A lobe as the warps take it: :class:`RotatedZonalLobes` as it is, anything
+    else as a coefficient list (:func:`~mitsuba_shsampling.sh.basis.as_coefficients`)."""
+    return lobe if isinstance(lobe, RotatedZonalLobes) else as_coefficients(lobe)
 
 
 def sh_leaf_corners(coeffs: list):

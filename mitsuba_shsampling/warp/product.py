@@ -30,7 +30,8 @@ kernel operations than one further SH level and gained less
 :func:`default_sh_depth` for the choice of the default.
 
 Memory per shading point: the n^2 float32 coefficients (400 B at 10 bands,
-1.6 kB at 20) are the only per-point data; the walk keeps about
+1.6 kB at 20), or the n(n+1)/2 + 2(n-1) factors of a rotated zonal lobe, are
+the only per-point data; the walk keeps about
 n(n+1)/2 + 2n further floats in registers while it runs. The pyramid is
 shared by all points (its size: :attr:`EnvPyramid.nbytes`, at most ~39 MB at
 its default depth cap).
@@ -52,11 +53,11 @@ import drjit as dr
 import mitsuba as mi
 
 from ..grid import Cell, child_phi_centres, grid_coordinates
-from ..sh.basis import as_coefficients, bands_of
+from ..sh.zonal import RotatedZonalLobes
 from .cosine_table import TABLE_DEPTH, CosineTable
 from .env_leaves import finish_pdf, finish_sample
 from .hierarchy import Split, check_depth, select_child, walk_pdf_absolute, walk_sample_absolute
-from .hsw import SHCellState, SHCellWeights
+from .hsw import SHCellState, SHCellWeights, as_lobe, lobe_bands
 from .proxy_lobe import ProxyLobe, moment_proxy
 
 
@@ -268,8 +269,10 @@ class ProductWarp:
 
     ``sample(coeffs, u, proxy=None)`` returns (world direction, solid-angle
     pdf); ``pdf(coeffs, d, proxy=None)`` evaluates the density for world
-    directions. ``coeffs`` are n^2 per-lane SH coefficients in the grid frame,
-    ``proxy`` the same lobe in closed form (:class:`~.proxy_lobe.ProxyLobe`;
+    directions. ``coeffs`` is the lobe in the grid frame: n^2 per-lane SH
+    coefficients, or (as the integrators pass it, and cheaper to walk)
+    :class:`~mitsuba_shsampling.sh.zonal.RotatedZonalLobes`, zonal lobes about
+    per-lane axes in factored form; ``proxy`` the same lobe in closed form (:class:`~.proxy_lobe.ProxyLobe`;
     the integrators fit one per BSDF). Without one, the proxy levels use
     :func:`~.proxy_lobe.moment_proxy`, a lobe read off the coefficients'
     first two bands, so the SH cell integrals (about 0.8k kernel operations
@@ -294,10 +297,10 @@ class ProductWarp:
     def weights(self, coeffs, proxy: ProxyLobe | None = None) -> ProductWeights:
         """The weight provider that :meth:`sample` and :meth:`pdf` walk (the cost
         benchmark, ``scripts/bench_cost_breakdown.py``, walks its levels apart)."""
-        coeffs = as_coefficients(coeffs)
-        sh_depth = min(self.sh_depth_for(bands_of(coeffs)), self.depth)
+        coeffs = as_lobe(coeffs)
+        sh_depth = min(self.sh_depth_for(lobe_bands(coeffs)), self.depth)
         if proxy is None and self.proxy_depth is not None and self.proxy_depth > sh_depth:
-            proxy = moment_proxy(coeffs)
+            proxy = moment_proxy(coeffs.coefficients(2) if isinstance(coeffs, RotatedZonalLobes) else coeffs)
         return ProductWeights(coeffs, self.pyramid, sh_depth, self.defensive_share, proxy, self.proxy_depth)
 
     def sh_depth_for(self, n_bands: int) -> int:
