@@ -19,9 +19,10 @@ tracing excluded, as a ``dr.freeze`` replay runs), the median of warm runs with
 Mitsuba's sampler and the product's runs interleaved round by round (the first
 call's wall time, compilation included, is reported separately); the operation
 count of the traced kernels is reported as a load-independent cost. The ``lobe`` column
-times the same sampling with the coefficients built in the kernel from each
-lane's lobe axis, as the integrators build them, instead of read from memory
-(n^2 floats a lane): both over Mitsuba's sampler in the same run. With
+times the same sampling with the lobe built in the kernel from each lane's axis,
+in the factored form the integrators pass
+(:class:`~mitsuba_shsampling.sh.zonal.RotatedZonalLobes`), instead of n^2
+coefficients read from memory: both over Mitsuba's sampler in the same run. With
 ``--sh-depths`` every listed sh_depth is measured (the trade-off table);
 otherwise the default of each band count.
 
@@ -35,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import os
 import statistics
 import time
@@ -47,7 +47,7 @@ import numpy as np
 from ..envmap import LEVEL_TOLERANCE, EnvPyramid
 from ..fidelity import product_fidelity
 from ..scenes import builtin_envmaps
-from ..sh.basis import sh_eval
+from ..sh.zonal import RotatedZonalLobes, phong_attenuation, rotate_zonal_lobes
 from ..warp.product import DEFAULT_PROXY_DEPTH, SH_DEPTH_WITH_PROXY, ProductWarp
 from . import interleaved_kernel_seconds, set_default_variant, write_json
 
@@ -64,11 +64,12 @@ def phong_exponent(n_bands: int) -> float:
 
 def phong_lobes(n_bands: int, axes: mi.Vector3f, s: float) -> list:
     """f_lm = lambda_l y_lm(axis) of the normalised Phong lobe, per lane."""
-    lam = [1.0, (s + 1) / (s + 2)]
-    for l in range(n_bands - 2):
-        lam.append(lam[l] * (s - l) / (s + l + 3))
-    basis = sh_eval(axes, n_bands - 1)
-    return [lam[math.isqrt(i)] * y for i, y in enumerate(basis)]
+    return phong_lobes_factored(n_bands, axes, s).coefficients()
+
+
+def phong_lobes_factored(n_bands: int, axes: mi.Vector3f, s: float) -> RotatedZonalLobes:
+    """The same lobes in the factored form that the integrators pass to the warps."""
+    return rotate_zonal_lobes([(phong_attenuation(s, n_bands), axes)])
 
 
 def first_call_seconds(run) -> float:
@@ -158,9 +159,9 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
                 dr.sync_thread()
 
             def sample_lobe_run():
-                # As the integrators run it: the lobe's coefficients built in the kernel from
-                # its axis (12 B a lane read), not n^2 floats read from memory.
-                d, pdf = warp.sample(phong_lobes(n_bands, axes, s), fresh_u())
+                # As the integrators run it: the lobe built in the kernel from its axis (12 B a
+                # lane read) in factored form (RotatedZonalLobes), not n^2 floats read from memory.
+                d, pdf = warp.sample(phong_lobes_factored(n_bands, axes, s), fresh_u())
                 dr.eval(d, pdf)
                 dr.sync_thread()
 
@@ -181,7 +182,7 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
                 settings.repeats)
             mitsuba_s, sample_s, lobe_s, pdf_s = (statistics.median(times[k])
                                                   for k in ("mitsuba", "sample", "lobe", "pdf"))
-            sample_ops, mitsuba_ops = kernel_ops(sample_run), kernel_ops(mitsuba_run)
+            sample_ops, lobe_ops, mitsuba_ops = kernel_ops(sample_run), kernel_ops(sample_lobe_run), kernel_ops(mitsuba_run)
             fidelity_warp = settings.warp(fidelity_pyramid, sh_depth)
             figures = [product_fidelity(fidelity_warp, lobe) for lobe in fidelity_lobes]
             mean = {key: float(np.mean([f[key] for f in figures])) for key in figures[0]}
@@ -198,6 +199,7 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
                 lobe_in_kernel_ratio_to_mitsuba=mitsuba_s / lobe_s,
                 first_call_s=compile_s,
                 sample_kernel_ops=sample_ops,
+                lobe_in_kernel_ops=lobe_ops,
                 mitsuba_kernel_ops=mitsuba_ops,
                 product_fidelity=mean["mean_relative_error"],
                 relative_variance=mean["relative_variance"],
