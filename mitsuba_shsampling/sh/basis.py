@@ -102,6 +102,19 @@ def azimuthal_powers(x, y, order: int):
     return c, s
 
 
+def unit_or_zero(d):
+    """(x, y, z, valid) of ``d`` normalised, for the basis evaluations.
+
+    Invalid lanes (a zero or non-finite ``d``) become the zero vector: every
+    m != 0 term then vanishes through (x + i y)^m, and the callers mask the
+    m = 0 terms with ``valid``."""
+    norm2 = dr.squared_norm(d)
+    valid = dr.isfinite(norm2) & (norm2 > 0)
+    inv = dr.rsqrt(dr.select(valid, norm2, 1))
+    x, y, z = (dr.select(valid, v * inv, 0) for v in (d.x, d.y, d.z))
+    return x, y, z, valid
+
+
 def sh_eval(d, order: int) -> list:
     """Evaluate the real SH basis at unit directions ``d``.
 
@@ -118,12 +131,7 @@ def sh_eval(d, order: int) -> list:
     Returns a list of ``(order+1)^2`` arrays, index ``l*(l+1)+m``.
     """
     check_order(order)
-    norm2 = dr.squared_norm(d)
-    valid = dr.isfinite(norm2) & (norm2 > 0)
-    inv = dr.rsqrt(dr.select(valid, norm2, 1))
-    # Invalid lanes become the zero vector: every m != 0 term then vanishes
-    # through (x + i y)^m and the m = 0 terms are masked below.
-    x, y, z = (dr.select(valid, v * inv, 0) for v in (d.x, d.y, d.z))
+    x, y, z, valid = unit_or_zero(d)
     q = reduced_legendre(z, order)
     c, s = azimuthal_powers(x, y, order)
     out = [None] * coefficient_count(order)

@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .basis import azimuthal_powers, reduced_legendre, sh_eval, sh_index
+from .basis import azimuthal_powers, reduced_legendre, sh_eval, sh_index, unit_or_zero
 
 PHONG_EXPONENT_MAX = 1e30
 """Per-lane Phong exponents are clamped to this value: float32 keeps
@@ -237,12 +237,7 @@ def rotate_zonal_lobes(lobes) -> RotatedZonalLobes:
     legendre, cos_terms, sin_terms = [], [], []
     for attenuation, axis in lobes:
         n = _check_band_count(len(attenuation))
-        norm2 = dr.squared_norm(axis)
-        valid = dr.isfinite(norm2) & (norm2 > 0)
-        inv = dr.rsqrt(dr.select(valid, norm2, 1))
-        # As in sh_eval: an invalid axis becomes the zero vector, so every m != 0 term
-        # vanishes through (x + i y)^m, and its m = 0 terms are masked.
-        x, y, z = (dr.select(valid, v * inv, 0) for v in (axis.x, axis.y, axis.z))
+        x, y, z, valid = unit_or_zero(axis)  # an invalid axis: its m = 0 terms masked below
         q = reduced_legendre(z, n - 1)
         c, s = azimuthal_powers(x, y, n - 1)
         g = [None] * triangle_index(n, 0)
