@@ -121,13 +121,19 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             # The product only at the first product_depth vertices: deeper ones sample the map alone.
             lobe, use_product = env.lobe(si, smooth & (depth < product_depth))
             # The BSDF sample always runs (it continues the path): no lane is product-only.
-            L += beta * env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe,
+            # Random numbers are drawn as Mitsuba's path draws them: in every lane still in
+            # the loop, one 2D sample for the emitters, 1D + 2D for the BSDF, 1D for the
+            # roulette, whether or not the lane uses them. At one seed the BSDF-sampled
+            # paths of the two integrators are then the same (where the environment is the
+            # only emitter), so noise they share, such as a caustic seen through glass,
+            # cancels in a paired comparison instead of deciding it.
+            L += beta * env.product_nee(scene, sampler.next_2d(active), si, bsdf, ctx, lobe,
                                         use_product, smooth, False, 0.5, 0.5)
             L += beta * env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, 0.5, 0.5)
 
             # ------------------------------ BSDF sampling ------------------------------
-            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_next),
-                                          sampler.next_2d(active_next), active_next)
+            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active),
+                                          sampler.next_2d(active), active_next)
             d = si.to_world(bs.wo)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             prev_si = mi.Interaction3f(si)
@@ -141,7 +147,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
             beta_max = dr.max(beta * dr.square(eta))
             rr_active = depth >= self.options.rr_depth
             rr_prob = dr.minimum(beta_max, 0.95)
-            rr_continue = sampler.next_1d(active_next) < rr_prob
+            rr_continue = sampler.next_1d(active) < rr_prob
             beta = dr.select(rr_active, beta * dr.rcp(rr_prob), beta)
             active = active_next & (~rr_active | rr_continue) & (beta_max != 0) & (bs.pdf > 0)
             depth += 1

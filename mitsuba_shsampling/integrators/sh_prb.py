@@ -187,7 +187,8 @@ class SHPRBIntegrator(RBIntegrator):
             # that the replay draws the same direction; evaluated with them.
             smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             lobe, use_product = env.lobe(si, smooth & (depth < self.product_depth))
-            Lr_env = self.environment_sample(env, scene, sampler.next_2d(smooth), si, bsdf, ctx,
+            # Random numbers drawn as Mitsuba's prb draws them (as ``sh_path``: see there).
+            Lr_env = self.environment_sample(env, scene, sampler.next_2d(active), si, bsdf, ctx,
                                              lobe, use_product, smooth, primal)
             Lr_em = mi.Spectrum(0.0)
             if dr.hint(env.needs_emitter_sampling, mode="scalar"):
@@ -198,8 +199,8 @@ class SHPRBIntegrator(RBIntegrator):
                 Lr_dir = β * (Lr_env + Lr_em)
 
             # ------------------------- Detached BSDF sampling --------------------------
-            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active_next),
-                                          sampler.next_2d(active_next), active_next)
+            bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active),
+                                          sampler.next_2d(active), active_next)
             d = si.to_world(bs.wo)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
 
@@ -230,7 +231,7 @@ class SHPRBIntegrator(RBIntegrator):
             β_max = dr.max(β * dr.square(η))
             rr_active = depth >= self.rr_depth
             rr_prob = dr.minimum(β_max, 0.95)
-            rr_continue = sampler.next_1d(active_next) < rr_prob
+            rr_continue = sampler.next_1d(active) < rr_prob
             β = dr.select(rr_active, β * dr.rcp(rr_prob), β)
             active = active_next & (~rr_active | rr_continue) & (β_max != 0) & (bs.pdf > 0)
             depth += 1
