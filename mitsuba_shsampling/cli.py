@@ -175,7 +175,7 @@ def _print_summary(report: Report) -> None:
     for row in report.verdict:
         print(f"  {row.scene} [{row.sampler}, {row.family}]")
         for label, line in [(row.configuration, row)] + [(o.configuration, o) for o in row.others]:
-            for c, title in ((line.equal_spp, "equal samples"), (line.equal_time, "equal time")):
+            for title, c in line.contests():
                 print(f"    {title}: {label or c.numerator} / {c.denominator} {c.quantity} "
                       f"x{_fmt(c.ratio, '.3g')} [{_fmt(c.low, '.3g')}, {_fmt(c.high, '.3g')}] "
                       f"({c.winner} best of all)")

@@ -10,8 +10,9 @@ For every scene x sampler, the project's plugin at its defaults (``sh_direct``, 
 with ``--family path``) is set against the *best* of Mitsuba's own strategies of that family in
 the same run (the set of ``mitsuba_shsampling.report.methods.mitsuba_strategies``, as in the
 verdict; lowest expected MSE at equal samples, highest efficiency = 1/(MSE x time) from the
-equal-sample passes, and from the renders at equal time, with the verdict's 90 % paired
-bootstrap interval), and against ``direct`` 1+1 (or ``path``). "bias ok" is the report's bias
+equal-sample passes, and from the renders at equal time, both with the verdict's 90 % paired
+bootstrap interval: the verdict's module says why the two equal-time estimates differ), and
+against ``direct`` 1+1 (or ``path``). "bias ok" is the report's bias
 test (p >= 1e-3), "tail ok" its tail comparison with ``direct`` (or ``path``).
 
 ``--choices`` prints, per cell, what ``strategy`` ``auto`` chose and predicted against what was
@@ -72,8 +73,9 @@ def rows(report: Report | dict, family: str):
             timed = {n: methods[n].equal_time for n in (*mitsuba, sh_method) if methods[n].equal_time}
             best_timed = max((n for n in timed if n != sh_method), key=lambda n: timed[n].efficiency,
                              default=None)
-            timed_ratio = (ratio_with_interval("equal_time", timed[sh_method], timed[best_timed])
+            timed_ratio = (ratio_with_interval("efficiency", timed[sh_method], timed[best_timed])
                            if best_timed and sh_method in timed else (None, None, None))
+            _, eff_low, eff_high = ratio_with_interval("efficiency", ours, theirs[best_eff])
             yield {
                 "map": envmap_name(report), "scene": scene.scene, "sampler": run.sampler,
                 "family": family, "method": sh_method,
@@ -81,6 +83,7 @@ def rows(report: Report | dict, family: str):
                 "mse_vs_best": ours.error.mse / theirs[best_mse].error.mse, "best_mse": best_mse,
                 "eff_vs_direct": ours.efficiency / base.efficiency if base else None,
                 "eff_vs_best": ours.efficiency / theirs[best_eff].efficiency, "best_eff": best_eff,
+                "eff_low": eff_low, "eff_high": eff_high,
                 "time_vs_direct": ours.time_s / base.time_s if base else None,
                 "timed_eff_vs_best": timed_ratio[0], "timed_low": timed_ratio[1], "timed_high": timed_ratio[2],
                 "best_timed": best_timed,
@@ -155,12 +158,14 @@ def main() -> None:
     table = [r for path in args.reports for report in reports(path) for r in rows(report, args.family)]
     base = BASELINE[args.family]
     print(f"| map | scene | MSE / {base} | MSE / best Mitsuba (which) | efficiency / {base} "
-          f"| efficiency / best Mitsuba (which) | equal-time efficiency / best Mitsuba [90 % interval] (which) "
+          f"| efficiency / best Mitsuba [90 % interval] (which) "
+          f"| equal-time efficiency / best Mitsuba [90 % interval] (which) "
           f"| time / {base} | brightest pixel / {base} | bias ok | tail ok |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in table:
         print(f"| {r['map']} | {r['scene']} | {fmt(r['mse_vs_direct'])} | {fmt(r['mse_vs_best'])} "
-              f"({r['best_mse']}) | {fmt(r['eff_vs_direct'])} | {fmt(r['eff_vs_best'])} ({r['best_eff']}) "
+              f"({r['best_mse']}) | {fmt(r['eff_vs_direct'])} | {fmt(r['eff_vs_best'])} "
+              f"[{fmt(r['eff_low'])}, {fmt(r['eff_high'])}] ({r['best_eff']}) "
               f"| {fmt(r['timed_eff_vs_best'])} [{fmt(r['timed_low'])}, {fmt(r['timed_high'])}] ({r['best_timed']}) "
               f"| {fmt(r['time_vs_direct'])} | {fmt(r['brightest_vs_direct'])} | {'yes' if r['bias_ok'] else 'NO'} "
               f"| {'yes' if r['tail_ok'] else 'NO'} |")

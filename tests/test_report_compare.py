@@ -1,5 +1,6 @@
 """``compare`` on scenes written without this project in mind: any camera, content-keyed cache, verdict, NaN texels."""
 
+import copy
 import json
 import os
 import re
@@ -136,7 +137,7 @@ def test_verdict_names_direct_the_clear_winner_over_bsdf_sampling_of_a_small_lig
     page = (tmp_path / "out" / "index.html").read_text()
     verdict_table = page[page.index('<table id="verdict">'):]
     verdict_table = verdict_table[:verdict_table.index("</table>")]
-    assert verdict_table.count('<td class="win"><b>direct</b>') == 2
+    assert verdict_table.count('<td class="win"><b>direct</b>') == 3  # every kind of contest
     assert page.index('id="verdict"') < page.index("<details>")  # verdict on top, settings at the bottom
 
 
@@ -270,7 +271,8 @@ def test_an_all_black_environment_gives_a_verdict_with_n_a_ratios_and_a_caveat_s
     report = compare(plain_scene, "scene.xml", plain_scene / "out", "--sampler", "independent",
                      methods="direct,env_only,sh_direct", passes="2")
     (row,) = report["verdict"]
-    for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
+    from mitsuba_shsampling.report.schema import CONTEST_TITLES
+    for kind, title in CONTEST_TITLES.items():
         assert row[kind]["ratio"] is row[kind]["low"] is row[kind]["high"] is None
         assert any(c.startswith(f"at {title} the ratio of sh_direct to ") and "is n/a" in c
                    for c in row["caveats"])
@@ -298,7 +300,7 @@ def test_a_pass_without_any_finite_pixel_makes_its_ratio_n_a_never_a_crash():
     assert row.equal_spp.winner == "sh_direct"  # the only finite MSE
     assert np.isnan(row.equal_spp.ratio) and np.isnan(row.equal_time.ratio) and not row.equal_time.decided
     assert any("non-finite pixel values" in c for c in row.caveats)
-    assert sum("is n/a" in c for c in row.caveats) == 2
+    assert sum("is n/a" in c for c in row.caveats) == 3  # each kind of contest
 
 
 def test_two_scenes_of_the_same_file_name_keep_their_own_images_and_names(plain_scene):
@@ -330,7 +332,7 @@ def verdict_entry(mse_per_pass, time_s=0.1, tail_worse=()):
             "times_s": [time_s] * len(mse_per_pass), "time_s": time_s, "spp": 8, "time_budget_s": 0.1,
             "budget_method": "direct", "tail_worse_than_baseline": list(tail_worse),
             "bias": {"flagged": False, "p_value": 0.5}}
-    return {"equal_spp": kind, "equal_time": dict(kind)}
+    return {"equal_spp": kind, "equal_time": copy.deepcopy(kind)}
 
 
 def test_the_verdicts_first_line_is_the_plugin_at_its_defaults_against_the_best_mitsuba_strategy():
@@ -352,15 +354,49 @@ def test_the_verdicts_first_line_is_the_plugin_at_its_defaults_against_the_best_
     assert other.equal_spp.ratio == pytest.approx(0.3 / 0.8)
 
 
+def one_cell_report(methods):
+    for entry in methods.values():
+        entry["family"] = "direct"
+    return {"scenes": [{"scene": "s", "path": "s.xml", "references": {},
+                        "runs": [{"sampler": "independent", "methods": methods}]}]}
+
+
+def test_noise_both_methods_draw_alike_cancels_in_the_efficiency_of_the_equal_sample_passes():
+    from mitsuba_shsampling.report.verdict import verdict
+
+    # A mirror: at one seed and spp both methods render the same image, rare bright passes
+    # included; the plugin's pass takes 0.8x the time. At equal time their spp differ, so
+    # the rare passes fall apart and leave the renders' interval undecided.
+    shared = [1.0, 1.0, 40.0, 1.0, 1.0, 1.0, 25.0, 1.0]
+    methods = {"direct_misc": verdict_entry(shared), "sh_direct": verdict_entry(shared, time_s=0.08)}
+    methods["direct_misc"]["equal_time"]["error"]["mse_per_pass"] = [1.0, 40.0, 1.0, 1.0, 1.0, 1.0, 1.0, 25.0]
+    methods["sh_direct"]["equal_time"]["error"]["mse_per_pass"] = [1.0, 1.0, 1.0, 40.0, 25.0, 1.0, 1.0, 1.0]
+    (row,) = verdict(one_cell_report(methods))
+    assert row.time_normalised.ratio == pytest.approx(1.25)
+    assert row.time_normalised.low == pytest.approx(1.25) and row.time_normalised.numerator_better
+    assert not row.equal_time.decided
+    assert [title for title, _ in row.contests()] == ["equal samples", "equal time",
+                                                      "equal time, from the equal-sample passes"]
+
+
+def test_equal_time_estimates_that_disagree_get_a_caveat():
+    from mitsuba_shsampling.report.verdict import verdict
+
+    methods = {"direct": verdict_entry([1.0, 1.1, 0.9, 1.0]), "sh_direct": verdict_entry([0.5, 0.55, 0.45, 0.5])}
+    (row,) = verdict(one_cell_report(methods))
+    assert not any("disagree" in c for c in row.caveats)
+    # Its equal-time renders twice as noisy as its equal-sample passes predict.
+    methods["sh_direct"]["equal_time"]["error"]["mse_per_pass"] = [2.0, 2.2, 1.8, 2.0]
+    (row,) = verdict(one_cell_report(methods))
+    assert any(c.startswith("the two equal-time estimates disagree") for c in row.caveats)
+
+
 def test_heavy_tails_are_flagged_only_for_the_methods_the_verdict_shows():
     from mitsuba_shsampling.report.verdict import verdict
 
     methods = {"direct": verdict_entry([1.0, 1.1]), "direct_misc": verdict_entry([0.8, 0.9]),
                "bsdf_only": verdict_entry([3.0, 3.3], tail_worse=["9 fireflies against direct's 0"])}
-    for entry in methods.values():
-        entry["family"] = "direct"
-    report = {"scenes": [{"scene": "s", "path": "s.xml", "references": {},
-                          "runs": [{"sampler": "independent", "methods": methods}]}]}
+    report = one_cell_report(methods)
     (row,) = verdict(report)
     assert not any("heavy tails" in c for c in row.caveats)
     methods["direct_misc"]["equal_time"]["tail_worse_than_baseline"] = ["brightest pixel 9 > 3 x direct's 2"]

@@ -84,27 +84,36 @@ def _cell_html(cell: VerdictCell, label: str | None) -> str:
             f'[{_num(cell.low, 3)}, {_num(cell.high, 3)}]; {best} of all: {_e(cell.winner)}</small></td>')
 
 
+def _cells_html(row, label: str | None) -> str:
+    """A verdict row's three cells (a report from before the third shows n/a there)."""
+    cells = [row.equal_spp, row.equal_time, row.time_normalised]
+    return "".join(_cell_html(c, label) if c is not None else '<td class="name">n/a</td>' for c in cells)
+
+
 def _verdict_section(report: Report) -> str:
     rows = report.verdict
     if not rows:
         return "<p>No verdict: fewer than two methods ran in every scene.</p>"
     head = ("<tr><th>scene</th><th>sampler</th><th>lighting</th><th>equal samples (expected MSE)</th>"
-            "<th>equal time (efficiency)</th><th>caveats</th></tr>")
+            "<th>equal time (efficiency)</th><th>equal time, from the equal-sample passes (efficiency)</th>"
+            "<th>caveats</th></tr>")
     body, others = [], []
     for r in rows:
         lighting = "direct" if r.family == DIRECT else "multi-bounce"
         where = f'<td>{_e(r.scene)}</td><td>{_e(r.sampler)}</td><td>{lighting}</td>'
-        cells = "".join(_cell_html(cell, r.configuration) for cell in (r.equal_spp, r.equal_time))
+        cells = _cells_html(r, r.configuration)
         body.append(f'<tr>{where}{cells}<td>{len(r.caveats)}</td></tr>')
         for other in r.others or []:
-            cells = "".join(_cell_html(cell, other.configuration) for cell in (other.equal_spp, other.equal_time))
+            cells = _cells_html(other, other.configuration)
             others.append(f"<tr>{where}{cells}</tr>")
     table = f'<table id="verdict">{head}{"".join(body)}</table>'
     legend = (f"<p>First: the project's plugin at its defaults (what switching the integrator gives) "
               f"against the best of Mitsuba's own strategies in the same run (or, with no project "
               f"method, the winner against the runner-up), highlighted when its interval says it is "
               f"the better of the two: MSE ratio at equal samples (below 1: the first is better), efficiency ratio "
-              f"1/(MSE x time) at equal time (above 1: the first is better); in brackets the "
+              f"1/(MSE x time) at equal time (above 1: the first is better), from the renders at equal "
+              f"time and from the equal-sample passes (the same quantity: at one seed and spp the noise "
+              f"both methods draw alike cancels there); in brackets the "
               f"{verdict.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
     if others:
         legend += ('<p>The project\'s other configurations, each against the same best Mitsuba strategy:</p>'

@@ -305,6 +305,11 @@ class VerdictOther:
     configuration: str
     equal_spp: VerdictCell
     equal_time: VerdictCell
+    time_normalised: VerdictCell | None = None
+
+    def contests(self) -> list[tuple[str, VerdictCell]]:
+        """(title, cell) of each kind the row holds, in the order reports show them."""
+        return _contests(self)
 
 
 @dataclasses.dataclass
@@ -320,6 +325,22 @@ class VerdictRow:
     caveats: list[str]
     configuration: str | None = None
     others: list[VerdictOther] = dataclasses.field(default_factory=list)
+    #: Efficiency of the equal-sample passes (:mod:`.verdict`); None in reports from before it.
+    time_normalised: VerdictCell | None = None
+
+    def contests(self) -> list[tuple[str, VerdictCell]]:
+        """(title, cell) of each kind the row holds, in the order reports show them."""
+        return _contests(self)
+
+
+#: The titles of the verdict's kinds (:mod:`.verdict`), in the order reports show them.
+CONTEST_TITLES = {"equal_spp": "equal samples", "equal_time": "equal time",
+                  "time_normalised": "equal time, from the equal-sample passes"}
+
+
+def _contests(row) -> list[tuple[str, VerdictCell]]:
+    return [(title, getattr(row, kind)) for kind, title in CONTEST_TITLES.items()
+            if getattr(row, kind) is not None]
 
 
 # The report ---------------------------------------------------------------------------------

@@ -4,7 +4,14 @@ Works on the report as saved (:func:`.schema.load_report` of ``report.json``), s
 can be recomputed from a saved report. For each scene, sampler and method family:
 
 - **equal samples**: lowest expected MSE (mean over passes of each pass's MSE);
-- **equal time**: highest efficiency 1 / (MSE x time per pass) of the equal-time renders.
+- **equal time**: highest efficiency 1 / (MSE x time per pass) of the equal-time renders;
+- **equal time, from the equal-sample passes** (``time_normalised``): the same efficiency
+  of the equal-sample passes. For these unbiased estimators the MSE falls as 1 / spp, so it
+  estimates what the equal-time renders estimate; but there the two methods render each
+  pass at one seed and one spp, so noise they draw alike (the same pixel positions, the
+  same BSDF-sampled paths: a sun seen in a mirror, a caustic through glass) cancels in the
+  pairing, while at equal time their spp differ and it does not. Where the two equal-time
+  intervals do not overlap, a caveat says so.
 
 The factor set against the winner is *the project's plugin at its defaults over the
 best of Mitsuba's own strategies* (the roles of :mod:`.methods`: every Mitsuba method of
@@ -28,8 +35,8 @@ import numpy as np
 
 from .methods import DEFAULT_PLUGIN_METHOD, MITSUBA, PROJECT, REFERENCE, role_of
 from .metrics import BIAS_ALPHA, TAIL_PERCENTILE
-from .schema import (MethodResult, PassResult, Report, RunResult, VerdictCell, VerdictOther, VerdictRow,
-                     load_report)
+from .schema import (CONTEST_TITLES, MethodResult, PassResult, Report, RunResult, VerdictCell, VerdictOther,
+                     VerdictRow, load_report)
 
 #: Bootstrap resamples and the two-sided coverage of the interval.
 BOOTSTRAP_RESAMPLES = 2000
@@ -89,15 +96,21 @@ def _efficiency(entry: PassResult, idx=None) -> float:
     return 1.0 / denom if denom > 0 else (math.inf if denom == 0 else math.nan)
 
 
+#: Each kind of contest: the phase whose passes it reads, its quantity.
+KINDS = {"equal_spp": ("equal_spp", "MSE"), "equal_time": ("equal_time", "efficiency"),
+         "time_normalised": ("equal_spp", "efficiency")}
+#: Each quantity: its statistic of a method's passes, and the sign that ranks the best first.
+QUANTITIES = {"MSE": (_mse, 1.0), "efficiency": (_efficiency, -1.0)}
+
+
 def _cell(results: dict[str, MethodResult], kind: str, project: list[str], mitsuba: list[str],
           lead: str | None = None) -> VerdictCell:
-    """The contest of ``kind``: its winner, and ``lead`` (default: the best project method)
-    over the best Mitsuba strategy, or with no project method the winner over the runner-up."""
-    entries = {n: getattr(results[n], kind) for n in project + mitsuba}
-    if kind == "equal_spp":
-        quantity, statistic, sign = "MSE", _mse, 1.0
-    else:
-        quantity, statistic, sign = "efficiency", _efficiency, -1.0
+    """The contest of ``kind`` (:data:`KINDS`): its winner, and ``lead`` (default: the best
+    project method) over the best Mitsuba strategy, or with no project method the winner over
+    the runner-up."""
+    phase, quantity = KINDS[kind]
+    entries = {n: getattr(results[n], phase) for n in project + mitsuba}
+    statistic, sign = QUANTITIES[quantity]
 
     def rank(name: str) -> tuple[bool, float]:
         """Best first; a method whose statistic is NaN last."""
@@ -196,9 +209,11 @@ def verdict(report: Report | dict) -> list[VerdictRow]:
                     else (project[0] if project else None)
                 cell_spp = _cell(results, "equal_spp", project, mitsuba, lead)
                 cell_time = _cell(results, "equal_time", project, mitsuba, lead)
+                cell_normalised = _cell(results, "time_normalised", project, mitsuba, lead)
                 others = [VerdictOther(method=n, configuration=configuration(n, results[n], family),
                                        equal_spp=_cell(results, "equal_spp", project, mitsuba, n),
-                                       equal_time=_cell(results, "equal_time", project, mitsuba, n))
+                                       equal_time=_cell(results, "equal_time", project, mitsuba, n),
+                                       time_normalised=_cell(results, "time_normalised", project, mitsuba, n))
                           for n in project if n != lead and mitsuba]
                 shown = list(dict.fromkeys([c.numerator for c in (cell_spp, cell_time)]
                                            + [c.denominator for c in (cell_spp, cell_time)]
@@ -209,7 +224,9 @@ def verdict(report: Report | dict) -> list[VerdictRow]:
                 if winner_mse > 0 and ref_noise > MAX_REFERENCE_NOISE * winner_mse:
                     caveats.append(f"the reference's own noise is {ref_noise / winner_mse:.0%} "
                                    f"of the winner's MSE: every MSE ratio is pulled towards 1 (raise --ref-spp)")
-                for cell, title in ((cell_spp, "equal samples"), (cell_time, "equal time")):
+                contests = {"equal_spp": cell_spp, "equal_time": cell_time, "time_normalised": cell_normalised}
+                for kind, cell in contests.items():
+                    title = CONTEST_TITLES[kind]
                     if not math.isfinite(cell.ratio):
                         caveats.append(f"at {title} the ratio of {cell.numerator} to {cell.denominator} "
                                        f"is n/a: the {cell.quantity} of one of them is zero or not finite (a black "
@@ -218,18 +235,32 @@ def verdict(report: Report | dict) -> list[VerdictRow]:
                     elif not cell.decided:
                         caveats.append(f"at {title} the {INTERVAL:.0%} interval of {cell.numerator} "
                                        f"vs {cell.denominator} contains 1: no clear winner between them")
+                if _disjoint(cell_time, cell_normalised):
+                    caveats.append(
+                        f"the two equal-time estimates disagree: {cell_time.ratio:.3g} [{cell_time.low:.3g}, "
+                        f"{cell_time.high:.3g}] from the equal-time renders, {cell_normalised.ratio:.3g} "
+                        f"[{cell_normalised.low:.3g}, {cell_normalised.high:.3g}] from the equal-sample passes "
+                        f"(the pass time changing with spp, a bias, or rare samples in one phase only)")
                 rows.append(VerdictRow(scene=scene.scene, sampler=run.sampler, family=family,
                                        equal_spp=cell_spp, equal_time=cell_time, caveats=caveats,
+                                       time_normalised=cell_normalised,
                                        configuration=(configuration(lead, results[lead], family)
                                                       if lead and mitsuba else None),
                                        others=others))
     return rows
 
 
-def ratio_with_interval(kind: str, a: PassResult, b: PassResult) -> tuple[float, float, float]:
-    """(ratio, low, high): ``a``'s expected MSE over ``b``'s for ``kind`` "equal_spp", its
-    efficiency over ``b``'s for "equal_time" (entries of one run), with the verdict's 90 %
-    paired bootstrap interval over passes."""
-    statistic = _mse if kind == "equal_spp" else _efficiency
+def _disjoint(a: VerdictCell, b: VerdictCell) -> bool:
+    """The two cells compare the same methods and their intervals do not overlap."""
+    same = (a.numerator, a.denominator) == (b.numerator, b.denominator)
+    bounds = (a.low, a.high, b.low, b.high)
+    return same and all(math.isfinite(x) for x in bounds) and (a.high < b.low or b.high < a.low)
+
+
+def ratio_with_interval(quantity: str, a: PassResult, b: PassResult) -> tuple[float, float, float]:
+    """(ratio, low, high): ``a``'s ``quantity`` ("MSE" or "efficiency", :data:`QUANTITIES`)
+    over ``b``'s (entries of one phase of one run), with the verdict's 90 % paired bootstrap
+    interval over passes."""
+    statistic, _ = QUANTITIES[quantity]
     low, high = _paired_bootstrap(statistic, a, b)
     return _ratio(statistic(a), statistic(b)), low, high

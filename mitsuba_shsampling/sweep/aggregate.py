@@ -33,7 +33,7 @@ import os
 import numpy as np
 
 from ..report.methods import DIRECT, METHODS, MITSUBA, REFERENCE, mitsuba_strategies, role_of
-from ..report.schema import PassResult, Report, load_report, serialise
+from ..report.schema import CONTEST_TITLES, PassResult, Report, load_report, serialise
 from .store import CellStore
 
 #: The method whose efficiency ratio the heat maps show.
@@ -95,8 +95,7 @@ def _verdict(report: Report, scene: str, sampler: str) -> dict | None:
         if row is not None and (row.scene, row.sampler, row.family) == (scene, sampler, DIRECT):
             keep = ("winner", "numerator", "denominator", "ratio", "low", "high")
             return {kind: {k: serialise(getattr(cell, k)) for k in keep}
-                    for kind, cell in (("equal_spp", row.equal_spp), ("equal_time", row.equal_time))
-                    if cell is not None}
+                    for kind in CONTEST_TITLES if (cell := getattr(row, kind)) is not None}
     return None
 
 
