@@ -138,7 +138,12 @@ variance of one pass across the passes, shown as a false-colour map. Relative MS
 baseline's time per pass (median wall time of a warm pass, replayed from a <code>dr.freeze</code>
 recording of the pass for every method unless <code>--no-freeze</code>, so Python's tracing is not in
 it; kernel compile time is listed apart).
-<b>Efficiency</b> = 1/(expected MSE x time per pass).</li>
+<b>Efficiency</b> = 1/(expected MSE x time per pass). The verdict gives it twice: from these
+renders, and from the equal-sample passes. Both estimate the same efficiency (the MSE of these
+unbiased estimators falls as 1/spp), but at one seed and one spp the methods draw the same pixel
+positions and, where their random numbers line up, the same BSDF-sampled paths, so the noise they
+share (a sun seen in a mirror, a caustic through glass) cancels in the paired ratio of the
+equal-sample passes and not in the renders at equal time, whose spp differ.</li>
 <li><b>Tails</b> (luminance): the brightest pixel of any pass, the {metrics.TAIL_PERCENTILE:g} %
 percentile of |render - reference| over every pixel of every pass, and <b>fireflies</b>: pixels above
 {metrics.FIREFLY_FACTOR:g} x their reference value + {metrics.FIREFLY_FLOOR:g} x the reference's mean.
