@@ -21,7 +21,7 @@ import numpy as np
 from . import metrics, verdict
 from .images import data_uri, false_colour, png_bytes
 from .methods import DIRECT
-from .schema import MaterialEntry, Report, RunResult, SceneResult, VerdictCell, serialise
+from .schema import CONTEST_TITLES, MaterialEntry, Report, RunResult, SceneResult, VerdictCell, serialise
 
 STYLE = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
@@ -86,7 +86,7 @@ def _cell_html(cell: VerdictCell, label: str | None) -> str:
 
 def _cells_html(row, label: str | None) -> str:
     """A verdict row's three cells (a report from before the third shows n/a there)."""
-    cells = [row.equal_spp, row.equal_time, row.time_normalised]
+    cells = [getattr(row, kind) for kind in CONTEST_TITLES]
     return "".join(_cell_html(c, label) if c is not None else '<td class="name">n/a</td>' for c in cells)
 
 

@@ -96,7 +96,8 @@ def _efficiency(entry: PassResult, idx=None) -> float:
     return 1.0 / denom if denom > 0 else (math.inf if denom == 0 else math.nan)
 
 
-#: Each kind of contest: the phase whose passes it reads, its quantity.
+#: Each kind of contest (the order of :data:`.schema.CONTEST_TITLES`): the phase whose
+#: passes it reads, its quantity.
 KINDS = {"equal_spp": ("equal_spp", "MSE"), "equal_time": ("equal_time", "efficiency"),
          "time_normalised": ("equal_spp", "efficiency")}
 #: Each quantity: its statistic of a method's passes, and the sign that ranks the best first.
@@ -207,13 +208,10 @@ def verdict(report: Report | dict) -> list[VerdictRow]:
                 ref = (scene.references or {}).get(family)
                 lead = DEFAULT_PLUGIN_METHOD.get(family) if DEFAULT_PLUGIN_METHOD.get(family) in project \
                     else (project[0] if project else None)
-                cell_spp = _cell(results, "equal_spp", project, mitsuba, lead)
-                cell_time = _cell(results, "equal_time", project, mitsuba, lead)
-                cell_normalised = _cell(results, "time_normalised", project, mitsuba, lead)
+                contests = {kind: _cell(results, kind, project, mitsuba, lead) for kind in KINDS}
+                cell_spp, cell_time, cell_normalised = contests.values()
                 others = [VerdictOther(method=n, configuration=configuration(n, results[n], family),
-                                       equal_spp=_cell(results, "equal_spp", project, mitsuba, n),
-                                       equal_time=_cell(results, "equal_time", project, mitsuba, n),
-                                       time_normalised=_cell(results, "time_normalised", project, mitsuba, n))
+                                       **{kind: _cell(results, kind, project, mitsuba, n) for kind in KINDS})
                           for n in project if n != lead and mitsuba]
                 shown = list(dict.fromkeys([c.numerator for c in (cell_spp, cell_time)]
                                            + [c.denominator for c in (cell_spp, cell_time)]
@@ -224,7 +222,6 @@ def verdict(report: Report | dict) -> list[VerdictRow]:
                 if winner_mse > 0 and ref_noise > MAX_REFERENCE_NOISE * winner_mse:
                     caveats.append(f"the reference's own noise is {ref_noise / winner_mse:.0%} "
                                    f"of the winner's MSE: every MSE ratio is pulled towards 1 (raise --ref-spp)")
-                contests = {"equal_spp": cell_spp, "equal_time": cell_time, "time_normalised": cell_normalised}
                 for kind, cell in contests.items():
                     title = CONTEST_TITLES[kind]
                     if not math.isfinite(cell.ratio):
@@ -241,9 +238,8 @@ def verdict(report: Report | dict) -> list[VerdictRow]:
                         f"{cell_time.high:.3g}] from the equal-time renders, {cell_normalised.ratio:.3g} "
                         f"[{cell_normalised.low:.3g}, {cell_normalised.high:.3g}] from the equal-sample passes "
                         f"(the pass time changing with spp, a bias, or rare samples in one phase only)")
-                rows.append(VerdictRow(scene=scene.scene, sampler=run.sampler, family=family,
-                                       equal_spp=cell_spp, equal_time=cell_time, caveats=caveats,
-                                       time_normalised=cell_normalised,
+                rows.append(VerdictRow(scene=scene.scene, sampler=run.sampler, family=family, **contests,
+                                       caveats=caveats,
                                        configuration=(configuration(lead, results[lead], family)
                                                       if lead and mitsuba else None),
                                        others=others))
