@@ -11,7 +11,11 @@ hashes the value's Dr.Jit indices as it is read). What reads *every* parameter
 
 from __future__ import annotations
 
+import re
+
+import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 
 def readable_parameters(params: mi.SceneParameters) -> list[tuple[str, object]]:
@@ -23,3 +27,24 @@ def readable_parameters(params: mi.SceneParameters) -> list[tuple[str, object]]:
         except TypeError:  # listed but never created (see the module docstring)
             continue
     return values
+
+
+def content_parts(obj: mi.Object) -> list:
+    """What determines ``obj``'s behaviour, for a content key
+    (:func:`~mitsuba_shsampling.build_cache.content_key`): its class, its description
+    (``str``: the settings no parameter exposes, such as a microfacet distribution;
+    addresses and invented object names removed) and every traversed parameter's value
+    (arrays as numpy, others as they are)."""
+    described = re.sub(r"0x[0-9a-fA-F]+|object_\d+", "", str(obj))
+    parts = [obj.class_name(), described]
+    for key, value in readable_parameters(mi.traverse(obj)):
+        parts += [re.sub(r"object_\d+", "object", key), _host_value(value)]
+    return parts
+
+
+def _host_value(value):
+    if dr.is_array_v(value):
+        # Read through a copy: evaluating a literal (a scale, say) gives the evaluated
+        # array a new variable, which would look like a parameter change to SceneCache.
+        return np.asarray(type(value)(value).numpy())
+    return value

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+# The suite's build cache and plans live in a folder of its own, made fresh for each run:
+# no test reads what an earlier run (or the user's renders) left in the user's cache.
+os.environ["SHSAMPLING_CACHE_DIR"] = tempfile.mkdtemp(prefix="shsampling-tests-")
 
 # Import the package first: it points Dr.Jit at a libLLVM >= 16 before drjit
 # loads one itself (see mitsuba_shsampling/_backend.py).

@@ -33,6 +33,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..build_cache import cached_build, content_key
 from ..grid import TWO_PI
 
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
@@ -532,43 +533,21 @@ class EnvPyramid:
 
         height, width = luminance.shape
         depth = auto_depth(height, width, DEFAULT_MAX_DEPTH if max_depth is None else max_depth)
-        n = 1 << depth
-        finest = scale * _phi_integrals(_theta_integrals(luminance, n), n)
-        radiant_total = float(finest.sum(dtype=np.float64))
-        compensated = False
-        corners = np.maximum(_corner_radiance(luminance, n) * np.float32(scale), 0.0)
-        if mis_compensation and radiant_total > 0:
-            # MIS compensation (Karlik et al. 2019): subtract the mean radiance
-            # (cells have equal solid angle) so this strategy concentrates on
-            # what is brighter than average and leaves the rest to BSDF sampling.
-            # A constant map would become black: keep it uncompensated then.
-            sharpened = np.maximum(finest - radiant_total / finest.size, 0.0)
-            if sharpened.max() > 0:
-                finest, compensated = sharpened.astype(np.float32), True
-                corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
-
-        built_depth = depth
-        depth = trimmed_depth(finest, corners, level_tolerance)  # checked by the constructors
-        if depth < built_depth:
-            # The finest levels do not pay (LEVEL_TOLERANCE): their sums and every other
-            # corner are the coarser level's exactly (its corners are a subset of theirs).
-            parts = 1 << (built_depth - depth)
-            finest = finest.astype(np.float64).reshape(1 << depth, parts, 1 << depth, parts).sum(axis=(1, 3))
-            corners = np.ascontiguousarray(corners[::parts, ::parts])
-
-        blocks = sum_pyramid_blocks(finest)
-        # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
-        # leaf records with the corners they need (see :func:`leaf_records`).
-        upper_end = 4 * block_offset(depth - 1)
-        buffer = blocks[:upper_end].astype(np.float32)
-        records = leaf_records(blocks[upper_end:].astype(np.float32), corners)
+        # The same texels, scale and settings always give the same levels: a map seen
+        # before (this process, or an earlier one through the disk cache) is not summed again.
+        key = content_key(luminance, scale, depth, bool(mis_compensation), float(level_tolerance))
+        built = cached_build("pyramid", key, lambda: _pyramid_arrays(luminance, scale, depth, mis_compensation,
+                                                                     level_tolerance))
+        depth, buffer, records = int(built["depth"]), built["buffer"], built["records"]
+        blocks_root, radiant_total, compensated = float(built["total"]), float(built["radiant_total"]), \
+            bool(built["compensated"])
 
         #: Finest level D; levels 0..D exist.
         self.depth: int = depth
         #: Levels built below D and dropped because they did not pay (LEVEL_TOLERANCE).
-        self.trimmed_levels: int = built_depth - depth
+        self.trimmed_levels: int = int(built["trimmed_levels"])
         #: Sum of the pyramid's root (the sampling target's integral), float64.
-        self.total: float = float(blocks[0])
+        self.total: float = blocks_root
         #: Integral of scale * luminance over the sphere (radiance x sr).
         self.radiant_total: float = radiant_total
         #: Whether the mean radiance was subtracted (MIS compensation).
@@ -675,3 +654,43 @@ class EnvPyramid:
         return (f"EnvPyramid[texels={height}x{width}, depth={self.depth}, trimmed_levels={self.trimmed_levels}, "
                 f"total={self.total:.6g}, "
                 f"nbytes={self.nbytes}, build_time_s={self.build_time_s:.3f}]")
+
+
+def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compensation: bool,
+                    level_tolerance: float) -> dict:
+    """The levels of :class:`EnvPyramid` from sanitised texel luminance, as a
+    :mod:`~mitsuba_shsampling.build_cache` record: ``buffer`` (levels 0..D-1 in 4-float
+    blocks), ``records`` (level D's leaf records), ``depth`` D after trimming,
+    ``trimmed_levels``, ``total`` (the root), ``radiant_total`` and ``compensated``."""
+    n = 1 << depth
+    finest = scale * _phi_integrals(_theta_integrals(luminance, n), n)
+    radiant_total = float(finest.sum(dtype=np.float64))
+    compensated = False
+    corners = np.maximum(_corner_radiance(luminance, n) * np.float32(scale), 0.0)
+    if mis_compensation and radiant_total > 0:
+        # MIS compensation (Karlik et al. 2019): subtract the mean radiance
+        # (cells have equal solid angle) so this strategy concentrates on
+        # what is brighter than average and leaves the rest to BSDF sampling.
+        # A constant map would become black: keep it uncompensated then.
+        sharpened = np.maximum(finest - radiant_total / finest.size, 0.0)
+        if sharpened.max() > 0:
+            finest, compensated = sharpened.astype(np.float32), True
+            corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
+
+    built_depth = depth
+    depth = trimmed_depth(finest, corners, level_tolerance)  # checked by the constructors
+    if depth < built_depth:
+        # The finest levels do not pay (LEVEL_TOLERANCE): their sums and every other
+        # corner are the coarser level's exactly (its corners are a subset of theirs).
+        parts = 1 << (built_depth - depth)
+        finest = finest.astype(np.float64).reshape(1 << depth, parts, 1 << depth, parts).sum(axis=(1, 3))
+        corners = np.ascontiguousarray(corners[::parts, ::parts])
+
+    blocks = sum_pyramid_blocks(finest)
+    # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
+    # leaf records with the corners they need (see :func:`leaf_records`).
+    upper_end = 4 * block_offset(depth - 1)
+    return {"buffer": blocks[:upper_end].astype(np.float32),
+            "records": leaf_records(blocks[upper_end:].astype(np.float32), corners),
+            "depth": depth, "trimmed_levels": built_depth - depth, "total": float(blocks[0]),
+            "radiant_total": radiant_total, "compensated": compensated}

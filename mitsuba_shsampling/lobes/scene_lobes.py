@@ -29,11 +29,13 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..build_cache import cached_build, content_key
 from ..scene_materials import registry_id
 from ..sh.basis import MAX_ORDER
 from ..sh.zonal import RotatedZonalLobes, clamped_cosine_attenuation, phong_attenuation, rotate_zonal_lobes
 from ..warp.proxy_lobe import ProxyLobe
 from .fit import fit_two_lobe, mirror_quadrature, tabulate_lobe, uv_positions, varies_over_surface
+from ..traversal import content_parts
 from .perturbed_frames import FRAME_WRAPPERS, PerturbedNormal, nested_bsdf
 
 BAND_ATTENUATION_TOL = 0.1
@@ -260,7 +262,14 @@ class SceneLobes:
 
     def _fit_bsdf(self, bsdf: mi.BSDF, uvs: np.ndarray) -> np.ndarray:
         """Parameters (side, view node, [w_d, w_g, s]) of one BSDF; side 1 is the
-        back side (view below the surface), all-zero for one-sided BSDFs."""
+        back side (view below the surface), all-zero for one-sided BSDFs. A BSDF of the
+        same content fitted before (another scene, object or parameter change, or an
+        earlier process) is not fitted again (:mod:`~mitsuba_shsampling.build_cache`)."""
+        key = content_key(*content_parts(bsdf), uvs, self.view_cosines)
+        return cached_build("lobe_fit", key, lambda: {"params": self._fit_bsdf_now(bsdf, uvs)})["params"]
+
+    def _fit_bsdf_now(self, bsdf: mi.BSDF, uvs: np.ndarray) -> np.ndarray:
+        """:meth:`_fit_bsdf` without the cache."""
         if not varies_over_surface(bsdf, uvs):
             uvs = uvs[:1]
         params = np.zeros((2, self.view_nodes, 3))

@@ -38,6 +38,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..build_cache import cached_build, content_key
 from ..envmap.pyramid import aligned_floats, block_offset, sum_pyramid_blocks
 from ..grid import Cell, grid_coordinates
 from .env_leaves import finish_pdf, finish_sample
@@ -170,10 +171,14 @@ class CosineTable:
         world = bin_normals()
         grid = pyramid.grid_from_world(mi.Vector3f(*(mi.Float(c.astype(np.float32)) for c in world.T)))
         normals = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in (grid.x, grid.y, grid.z)], axis=1)
-        tables = (mixture_tables(pyramid.level_numpy(min(TABLE_DEPTH + 1, pyramid.depth)), normals, defensive_share)
-                  if not pyramid.is_black
-                  else np.full((len(world), 1 << TABLE_DEPTH, 1 << TABLE_DEPTH), 4.0**-TABLE_DEPTH))
-        self.buffer = aligned_floats(sum_pyramid_blocks(tables))
+        if pyramid.is_black:
+            blocks = sum_pyramid_blocks(np.full((len(world), 1 << TABLE_DEPTH, 1 << TABLE_DEPTH), 4.0**-TABLE_DEPTH))
+        else:
+            cells = pyramid.level_numpy(min(TABLE_DEPTH + 1, pyramid.depth))
+            # The same map level, frame and share give the same tables (build_cache).
+            blocks = cached_build("cosine_tables", content_key(cells, normals, float(defensive_share)), lambda: {
+                "blocks": sum_pyramid_blocks(mixture_tables(cells, normals, defensive_share))})["blocks"]
+        self.buffer = aligned_floats(blocks)
         self.nbytes = 4 * dr.width(self.buffer)
         dr.eval(self.buffer)
 

@@ -1,0 +1,143 @@
+"""Host-side builds kept by the content of their inputs: in the process and on disk.
+
+The per-scene state is built on the host from the scene's data: the environment
+pyramid from the map's texels, a lobe fit from a BSDF's parameters, the cosine
+tables from the pyramid. The same inputs always give the same arrays, so a build
+is looked up by a key made of its inputs' content (:func:`content_key`) before it
+runs, as Dr.Jit looks up a compiled kernel by its source:
+
+- in this process (a second integrator object, a re-load of the same scene, a
+  parameter change that leaves this input as it was): a small table of recent
+  builds;
+- on disk, in the user's cache folder (``platformdirs``), one ``.npz`` file per
+  build, in a folder named after the package's code (a digest of its source files,
+  so an edited build function never reads an older one's arrays): a fresh process on
+  a scene rendered before skips the builds, as it skips the compilation of the
+  kernels.
+
+``SHSAMPLING_CACHE_DIR`` names another folder; ``SHSAMPLING_CACHE_DIR=off`` keeps
+builds in the process only. A file that cannot be read is built again and
+rewritten (a cache never decides a result); one that cannot be written is left
+out with no more than a warning.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import warnings
+from collections import OrderedDict
+from typing import Callable
+
+import numpy as np
+
+ENVIRONMENT_VARIABLE = "SHSAMPLING_CACHE_DIR"
+"""Names the cache folder; ``off`` (or ``0``, ``none``) keeps builds in the process only."""
+
+IN_PROCESS_ENTRIES = 64
+"""Builds kept in the process (the least recently used goes first)."""
+
+#: A build's result: names -> numpy arrays or JSON values (numbers, strings, lists).
+Record = dict
+
+_memory: "OrderedDict[str, Record]" = OrderedDict()
+
+
+def cache_folder() -> str | None:
+    """The folder of this package version's builds, or None where the disk cache is off."""
+    chosen = os.environ.get(ENVIRONMENT_VARIABLE)
+    if chosen is not None and chosen.strip().lower() in ("off", "0", "none", ""):
+        return None
+    if chosen is None:
+        import platformdirs
+
+        chosen = platformdirs.user_cache_dir("mitsuba-shsampling")
+    return os.path.join(chosen, code_digest())
+
+
+_code_digest: str | None = None
+
+
+def code_digest() -> str:
+    """A digest of the package's Python sources (computed once per process)."""
+    global _code_digest
+    if _code_digest is None:
+        root = os.path.dirname(os.path.abspath(__file__))
+        digest = hashlib.blake2b(digest_size=8)
+        for folder, folders, files in sorted(os.walk(root)):
+            folders.sort()
+            for name in sorted(f for f in files if f.endswith(".py")):
+                with open(os.path.join(folder, name), "rb") as f:
+                    digest.update(name.encode() + b"\x00" + f.read())
+        _code_digest = digest.hexdigest()
+    return _code_digest
+
+
+def content_key(*parts) -> str:
+    """A hex digest of ``parts``: numpy arrays by dtype, shape and bytes, anything else
+    by its ``repr`` (numbers, strings, tuples of them)."""
+    digest = hashlib.blake2b(digest_size=20)
+    for part in parts:
+        if isinstance(part, np.ndarray):
+            array = np.ascontiguousarray(part)
+            digest.update(f"{array.dtype.str}{array.shape}".encode())
+            digest.update(array.view(np.uint8).ravel())
+        else:
+            digest.update(repr(part).encode())
+        digest.update(b"\x00")
+    return digest.hexdigest()
+
+
+def cached_build(kind: str, key: str, build: Callable[[], Record]) -> Record:
+    """``build()``'s record for ``key``, built only if neither this process nor the disk
+    cache has it. ``kind`` names the sort of build (its files' folder)."""
+    name = f"{kind}/{key}"
+    record = _memory.get(name)
+    if record is not None:
+        _memory.move_to_end(name)
+        return record
+    folder = cache_folder()
+    path = os.path.join(folder, kind, key + ".npz") if folder else None
+    record = _read(path) if path else None
+    if record is None:
+        record = build()
+        if path:
+            _write(path, record)
+    _memory[name] = record
+    while len(_memory) > IN_PROCESS_ENTRIES:
+        _memory.popitem(last=False)
+    return record
+
+
+def clear_in_process() -> None:
+    """Forget the builds kept in this process (tests; the disk cache is left alone)."""
+    _memory.clear()
+
+
+def _read(path: str) -> Record | None:
+    if not os.path.exists(path):
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as stored:
+            values = json.loads(str(stored["__values__"]))
+            return {**{k: stored[k] for k in stored.files if k != "__values__"}, **values}
+    except Exception:  # a truncated or foreign file: build again (and overwrite it)
+        return None
+
+
+def _write(path: str, record: Record) -> None:
+    arrays = {k: v for k, v in record.items() if isinstance(v, np.ndarray)}
+    values = {k: v for k, v in record.items() if not isinstance(v, np.ndarray)}
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        # Written under a temporary name and renamed: a process reading the cache at the
+        # same time sees the whole file or none.
+        handle, temporary = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
+        with os.fdopen(handle, "wb") as f:
+            np.savez(f, __values__=np.array(json.dumps(values)), **arrays)
+        os.replace(temporary, path)
+    except OSError as err:
+        warnings.warn(f"mitsuba_shsampling: cannot write the build cache {path} ({err}); "
+                      f"set {ENVIRONMENT_VARIABLE} to a writable folder, or to 'off'", RuntimeWarning)
