@@ -1,4 +1,4 @@
-"""Command line: ``mitsuba-shsampling compare|bench|render|sweep`` (also ``python -m mitsuba_shsampling``).
+"""Command line: ``mitsuba-shsampling compare|bench|render|sweep|calibrate`` (also ``python -m mitsuba_shsampling``).
 
 Exit codes: 0 success, 2 bad input (missing scene or map, unknown method or
 variant, invalid option), 1 any other failure.
@@ -12,7 +12,7 @@ import os
 import sys
 from typing import TYPE_CHECKING
 
-from . import render
+from . import calibration, render
 from .command_line import DEFAULT_VARIANT, SAMPLERS, UsageError, max_depth_problem, set_variant
 from .sweep import command as sweep
 from .report import DEFAULT_CACHE_DIR
@@ -82,6 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--max-spp", type=_positive, default=None, help="largest spp of the sweep (default 256, quick 16)")
 
     render.add_parser(sub, DEFAULT_VARIANT)
+    calibration.add_parser(sub, DEFAULT_VARIANT)
     sweep.add_arguments(sub.add_parser("sweep", help="run compare over a grid of scenes x maps x samplers (Dask)"))
     return parser
 
@@ -217,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mitsuba-shsampling`` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
     commands = {"compare": _compare, "bench": _bench, "render": lambda a: render.main(a, set_variant),
-                "sweep": sweep.command}
+                "sweep": sweep.command, "calibrate": calibration.main}
     try:
         return commands[args.command](args)
     except UsageError as err:

@@ -1,7 +1,8 @@
 """Specification of the per-material choice of the environment strategy (``strategy`` ``auto``).
 
 The chooser predicts each strategy's variance at the camera's first hits by
-quadrature (visibility included) and weighs it against pilot pass times. On
+quadrature (visibility included) and weighs it against the strategies' costs (a
+cost model; timed pilot passes with ``plan`` ``measure``). On
 synthetic cases the answer is known; the predictions must agree with the
 variance measured in renders; a scene that mixes strategies stays unbiased;
 and where no product strategy pays, no product code is traced.
@@ -18,9 +19,11 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong, window_latlong  # noqa: E402
 from mitsuba_shsampling.integrators import register  # noqa: E402
-from mitsuba_shsampling.integrators.chooser import (LEAN, Pilots, camera_frames, choose_strategies,  # noqa: E402
-                                                    cosine_pilot, film_variance_factor, frame_variances,
-                                                    confirm_by_timing, minimise_error_at_equal_time)
+from mitsuba_shsampling.integrators.chooser import (choose_strategies, confirm_by_timing,  # noqa: E402
+                                                    minimise_error_at_equal_time)
+from mitsuba_shsampling.integrators.pilots import (LEAN, Pilots, calibrate, cosine_pilot,  # noqa: E402
+                                                   film_variance_factor, measure_pass_costs)
+from mitsuba_shsampling.integrators.quadrature import camera_frames, frame_variances  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
 from mitsuba_shsampling.integrators.strategy import Strategy  # noqa: E402
@@ -281,10 +284,15 @@ def test_the_pilots_run_what_they_time_and_their_images_confirm_the_quadrature(r
     render through Mitsuba's; it once ran the choice again there, and the
     product_only pilot ran the product.)"""
     scene = floor_scene({"type": "diffuse"}, WINDOW, rfilter, size=96)
+    measured = mi.load_dict({"type": "sh_direct", "plan": "measure", "plan_file": ""})
+    mi.render(scene, integrator=measured, spp=1)
+    assert set(measured.choice(scene).pilot_variance) == {LEAN, E.label, P.label, PO.label}
+    # The default plan runs the same pilots for their images alone (no lean kernel: it
+    # would be one more kernel to trace, and only its time told it apart).
     integrator = mi.load_dict({"type": "sh_direct"})
     mi.render(scene, integrator=integrator, spp=1)
     choice = integrator.choice(scene)
-    assert set(choice.pilot_variance) == {LEAN, E.label, P.label, PO.label}
+    assert set(choice.pilot_variance) == {E.label, P.label, PO.label}
     for name, (predicted, measured) in choice.pilot_variance.items():
         assert measured == pytest.approx(predicted, rel=0.15), name
     assert choice.shared_variance < 0.05 * choice.pilot_variance[E.label][1]
@@ -296,7 +304,6 @@ def test_the_pilots_run_what_they_time_and_their_images_confirm_the_quadrature(r
 def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_measured():
     """Pilot images that show the product at twice the quadrature's variance (and the
     environment as predicted, nothing shared) double the product's predicted variances."""
-    from mitsuba_shsampling.integrators.chooser import calibrate
     variance = {1: {E: 4.0, P: 1.0}, 2: {E: 2.0, P: 2.0}}
     candidates = {E.label: {1: E, 2: E}, P.label: {1: P, 2: E}}
     model = {E.label: 0.5 + 6.0, P.label: 0.5 + 1.0 + 2.0}
@@ -314,7 +321,6 @@ def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_meas
 
 def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():
     """Common random numbers: what the strategies share cancels where pilots are compared."""
-    from mitsuba_shsampling.integrators.chooser import measure_pass_costs
     scene = floor_scene({"type": "diffuse"}, WINDOW)
     env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
     (key,) = env.strategies.ids
@@ -332,7 +338,7 @@ def test_a_pilot_pass_is_timed_by_its_kernels_not_by_its_tracing():
     count only the kernels' execution time: positive, and less than the wall time."""
     import time
 
-    from mitsuba_shsampling.integrators.chooser import kernel_time
+    from mitsuba_shsampling.timing import kernel_time
     scene = floor_scene({"type": "diffuse"}, WINDOW, size=64)
     integrator = mi.load_dict({"type": "sh_direct", "strategy": "product"})
     mi.render(scene, integrator=integrator, spp=4)  # compiles
@@ -405,11 +411,22 @@ def test_auto_chooses_before_the_first_pass_and_reports_every_material():
     choice = sh.choice(scene)
     names = {m.name for m in choice.materials}
     assert {"ggx", "diffuse", "plane"} <= names
-    assert set(choice.pass_time) >= {LEAN, E.label, P.label}
+    assert "at equal time" in choice.summary() or "no product strategy pays" in choice.summary()
+    # By default no clock enters the plan: the costs are the cost model's.
+    assert choice.mode == "estimate" and choice.pass_time == {} and choice.costs["product_walk"] > 0
+
+
+def test_a_measured_plan_times_every_strategy_and_prices_the_cosine_tables_apart():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})
+    sh = mi.load_dict({"type": "sh_direct", "max_bands": 5, "plan": "measure"})
+    choice = sh.plan(scene)
+    assert choice.mode == "measure" and set(choice.pass_time) >= {LEAN, E.label, P.label}
     # A diffuse and a glossy lobe: a pilot with the diffuse one alone on the product
     # prices the cosine tables apart from the SH walk.
     assert {cosine_pilot(P), cosine_pilot(PO)} <= set(choice.pass_time)
-    assert "at equal time" in choice.summary() or "no product strategy pays" in choice.summary()
+    assert choice.costs["source"] == "measured in the scene"
 
 
 @pytest.mark.parametrize("name", ["sh_direct", "sh_path"])

@@ -40,8 +40,8 @@ def write_json(path: str, records) -> None:
 def kernel_seconds(run) -> float:
     """Execution time (s) of the JIT kernels that ``run()`` launches (it must wait for them):
     what a replayed ``dr.freeze`` recording costs, without Python's tracing (the chooser's
-    :func:`~mitsuba_shsampling.integrators.chooser.kernel_time`, which measures its pilots)."""
-    from ..integrators.chooser import kernel_time
+    :func:`~mitsuba_shsampling.timing.kernel_time`)."""
+    from ..timing import kernel_time
 
     return kernel_time(run)[1]
 

@@ -20,6 +20,7 @@ perturbed normal (:mod:`~mitsuba_shsampling.lobes.perturbed_frames`). With
 
 from __future__ import annotations
 
+import time
 import warnings
 from typing import Callable, NamedTuple
 
@@ -34,7 +35,7 @@ from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from .estimators import emitter_id, environment_sample, is_emitter, mis_weight, mitsuba_emitter_sample
-from .options import ProductOptions
+from .options import OptionError, ProductOptions
 from .strategy import AUTO, Strategy, StrategyTable, strategy_named
 
 
@@ -61,13 +62,20 @@ class ProductEnvironment:
     """
 
     def __init__(self, scene: mi.Scene, options: ProductOptions, carry_all: bool = False):
+        start = time.perf_counter()
         self.scene = scene
         self.emitter = scene.environment()
         self.emitter_id = emitter_id(self.emitter)
         self.pyramid = self.lobes = self.warp = self.warp_plain = None
         self.env_directions = self.env_plain = None
         self.strategies = self.choice = None
-        self.strategy_option = options.strategy
+        self.strategy_option = options.default_strategy
+        #: The plugin's name, for messages; what a stored plan must match (:mod:`.plan_file`).
+        self.plugin, self.options_key = options.PLUGIN, options.plan_key
+        #: Registry id -> the strategy ``strategy`` names for that material.
+        self.forced: dict[int, Strategy] = {}
+        #: Time the build took (s): the set-up before the plan.
+        self.build_seconds = 0.0
         #: Registry id -> the scene's material (:mod:`~mitsuba_shsampling.scene_materials`).
         self._materials = {registry_id(m.bsdf): m for m in scene_materials(scene)}
         #: Some material has a Dirac component (which only a BSDF sample reaches).
@@ -103,15 +111,19 @@ class ProductEnvironment:
         self.env_plain = EmitterDirections(self.emitter)
         self.env_directions = (EmitterDirections(compensated_copy(self.emitter)) if self.pyramid.mis_compensation
                                else self.env_plain)
-        forced = None if options.strategy == AUTO else strategy_named(options.strategy)
+        forced = None if options.default_strategy == AUTO else strategy_named(options.default_strategy)
+        named = {name: strategy_named(value) for name, value in options.material_strategies.items()
+                 if value != AUTO}
         # A forced strategy that keeps the BSDF sample leaves nothing to trace for lanes without it.
-        self.carry_all = carry_all and (forced is None or forced.carries_all)
+        self.carry_all = carry_all and (forced is None or forced.carries_all
+                                        or any(s.carries_all for s in named.values()))
         #: The product with the map itself (not compensated): the strategy of
         #: lanes where it carries every sample, so that nothing is left to a
         #: BSDF sample that does not run there. The same warp when the scene's
         #: pyramid is not compensated; built only where that strategy is
         #: allowed (``carry_all``, a second pyramid) otherwise.
-        if self.lobes.has_product_lobes and (forced is None or forced.uses_product):
+        if self.lobes.has_product_lobes and (forced is None or forced.uses_product
+                                             or any(s.uses_product for s in named.values())):
             # Diffuse materials' lanes sample the product from the cosine tables (no SH walk).
             warp_options = dict(sh_depth=options.warp_sh_depth, defensive_share=options.defensive_share,
                                 proxy_depth=options.warp_proxy_depth, cosine_tables=self.lobes.has_cosine_lobes)
@@ -121,11 +133,33 @@ class ProductEnvironment:
         first = forced or Strategy.PRODUCT
         self.strategies = StrategyTable({key: self._runnable(key, first) for key, m in self._materials.items()
                                          if mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth)})
+        self.forced = self._resolve_named(named)
+        if forced is not None:  # no plan to make: the named materials get theirs now
+            self.strategies.assign(self.forced)
         self.active = True
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it: every
         # smooth lane samples the environment through this object.
         self.needs_emitter_sampling = bool(other_emitters)
+        self.build_seconds = time.perf_counter() - start
+
+    def _resolve_named(self, named: dict[str, Strategy]) -> dict[int, Strategy]:
+        """Registry id -> strategy of the materials ``strategy`` names; an unknown name, or
+        a strategy the material cannot run, is an :class:`~.options.OptionError`."""
+        by_name = {m.name: key for key, m in self._materials.items()}
+        resolved = {}
+        for name, strategy in named.items():
+            key = by_name.get(name)
+            if key is None:
+                raise OptionError(f"{self.plugin}: parameter 'strategy' names material '{name}', which the scene "
+                                  f"does not have (its materials: {', '.join(sorted(by_name)) or 'none'})")
+            can_run = self.allowed(key) if key in self.strategies.ids else []
+            if strategy not in can_run:
+                raise OptionError(f"{self.plugin}: parameter 'strategy': material '{name}' cannot run "
+                                  f"'{strategy.label}' here (it can run: "
+                                  f"{', '.join(s.label for s in can_run) or 'none: it samples no environment'})")
+            resolved[key] = strategy
+        return resolved
 
     # -- Host side: the strategy of each material -----------------------------
 

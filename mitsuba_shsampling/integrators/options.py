@@ -37,7 +37,7 @@ from ..warp.hierarchy import MAX_DEPTH
 from ..warp.oracle import (DEFAULT_RESOLUTION as DEFAULT_ORACLE_RESOLUTION,
                            MAX_RESOLUTION as MAX_ORACLE_RESOLUTION, check_resolution)
 from ..warp.product import DEFAULT_DEFENSIVE_SHARE, DEFAULT_PROXY_DEPTH, SH_DEPTH_WITH_PROXY, check_defensive_share
-from .strategy import AUTO, STRATEGY_NAMES, Strategy
+from .strategy import AUTO, ESTIMATE, PLAN_MODES, STRATEGY_NAMES, Strategy, parse_strategy
 
 #: Band counts the lobe proxies support (:func:`~..lobes.scene_lobes.check_max_bands`).
 MIN_BANDS = DIFFUSE_BANDS
@@ -117,16 +117,29 @@ class ProductOptions(PluginOptions):
     hide_emitters: bool = dataclasses.field(default=False, metadata=_doc(
         "Hide directly visible emitters."))
     strategy: str = dataclasses.field(default=AUTO, metadata=_doc(
-        "How each material samples the environment: ``environment`` (the environment alone, "
+        "How each material samples the environment (one value for every material, or a "
+        "comma-separated list of ``material=value`` entries naming materials by their BSDF's id, "
+        "with at most one bare value for the others, e.g. ``copper=product,ground=environment``): "
+        "``environment`` (the environment alone, "
         "MIS-compensated, with the BSDF samples: Mitsuba's ``direct`` with ``mis_compensation`` "
         "on this package's pyramid, no lobe and no product walk), ``product`` (the SH lobe x "
         "environment product with the BSDF samples, under MIS), ``product_only`` (``sh_direct`` "
         "only: the product with the uncompensated map carries every sample and no BSDF sample "
         "runs, for BSDFs without a Dirac part; the others use ``product``), or ``auto``: before "
         "the first pass each material gets the strategy that minimises the predicted image error "
-        "at equal time, from the variance of each strategy at the camera's first hits and pilot "
-        "pass times (see integrators/chooser.py). Materials without a product lobe "
+        "at equal time, from the variance of each strategy at the camera's first hits and the "
+        "strategies' costs (see ``plan`` and integrators/chooser.py). Materials without a product lobe "
         "(transmissive BSDFs) use the environment strategies only."))
+    plan: str = dataclasses.field(default=ESTIMATE, metadata=_doc(
+        "Where ``auto`` takes the strategies' costs from: ``estimate``, a cost model (this "
+        "machine's calibration, ``python -m mitsuba_shsampling calibrate``, else the shipped "
+        "one), so that the same scene and options give the same plan, and the same image at "
+        "the same seed, in every process; or ``measure``, pilot passes timed in the scene (a "
+        "plan that can differ from run to run; kept in the cache folder by the scene's content "
+        "and reused, as FFTW keeps its wisdom)."))
+    plan_file: str = dataclasses.field(default="", metadata=_doc(
+        "A JSON file for the plan: loaded when it holds a plan for this scene's materials and "
+        "these options, else made and written there (empty: none)."))
     max_bands: int = dataclasses.field(default=DEFAULT_MAX_BANDS, metadata=_doc(
         f"Cap on the SH band count of the lobe proxies ({MIN_BANDS}..{MAX_BANDS}); the scene's "
         "band count follows its sharpest lobe, and sharper lobes are widened to what the cap "
@@ -157,8 +170,16 @@ class ProductOptions(PluginOptions):
     STRATEGIES: ClassVar[tuple] = (AUTO,) + STRATEGY_NAMES
 
     def _check_ranges(self) -> None:
-        if self.strategy not in self.STRATEGIES:
-            self._fail("strategy", "must be one of " + ", ".join(f"'{s}'" for s in self.STRATEGIES), self.strategy)
+        one_of = "must be one of " + ", ".join(f"'{s}'" for s in self.STRATEGIES)
+        try:
+            default, per_material = parse_strategy(self.strategy)
+        except ValueError as err:
+            self._fail("strategy", f"{one_of}, or a list 'material=strategy,...' ({err})", self.strategy)
+        for value in [default, *per_material.values()]:
+            if value not in self.STRATEGIES:
+                self._fail("strategy", one_of + (" (in every entry)" if per_material else ""), self.strategy)
+        if self.plan not in PLAN_MODES:
+            self._fail("plan", "must be one of " + ", ".join(f"'{m}'" for m in PLAN_MODES), self.plan)
         try:
             check_max_bands(self.max_bands)
         except ValueError:
@@ -171,6 +192,21 @@ class ProductOptions(PluginOptions):
             check_defensive_share(self.defensive_share)
         except ValueError:
             self._fail("defensive_share", "must be in (0, 1]", self.defensive_share)
+
+    @property
+    def default_strategy(self) -> str:
+        """``strategy``'s value for the materials it does not name (``auto`` by default)."""
+        return parse_strategy(self.strategy)[0]
+
+    @property
+    def material_strategies(self) -> dict[str, str]:
+        """Material name -> the strategy ``strategy`` sets for it."""
+        return parse_strategy(self.strategy)[1]
+
+    @property
+    def plan_key(self) -> str:
+        """What a stored plan must have been made with: every option but the plan's own."""
+        return repr(dataclasses.replace(self, plan=ESTIMATE, plan_file=""))
 
     @property
     def warp_sh_depth(self) -> int | None:

@@ -6,9 +6,10 @@ import drjit as dr
 import mitsuba as mi
 
 from .chooser import StrategyChooser
-from .environment import ProductEnvironment, SceneCache
+from .environment import ProductEnvironment
 from .estimators import bsdf_sample_of_emitters, dirac_sample_of_emitters, first_hit
 from .options import DirectOptions, document_parameters
+from .sharing import plan, shared_planning
 
 
 @document_parameters(DirectOptions)
@@ -62,8 +63,10 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         self.options = options = DirectOptions.from_properties(props)
         # Without BSDF samples every environment sample already carries the lane.
         carry_all = options.bsdf_samples > 0
-        self.scenes = SceneCache(lambda scene: ProductEnvironment(scene, options, carry_all))
-        self.chooser = StrategyChooser(options.emitter_samples, options.bsdf_samples)
+        self.scenes, self.chooser = shared_planning(
+            options, (carry_all,), lambda scene: ProductEnvironment(scene, options, carry_all),
+            lambda: StrategyChooser(options.emitter_samples, options.bsdf_samples, "direct", options.plan,
+                                    options.plan_file))
 
     def prepare_scene(self, scene, sensor=0):
         """What :meth:`render` does on the host before it traces a pass: build (or
@@ -77,6 +80,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         if not self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting) renders as configured
             self.prepare_scene(scene, sensor)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    plan = plan
 
     def choice(self, scene):
         """The strategy chosen for each material of ``scene``

@@ -6,9 +6,10 @@ import drjit as dr
 import mitsuba as mi
 
 from .chooser import StrategyChooser
-from .environment import ProductEnvironment, SceneCache
+from .environment import ProductEnvironment
 from .estimators import has_emitting_shapes, mis_weight, mitsuba_hit_pdf
 from .options import PathOptions, document_parameters
+from .sharing import plan, shared_planning
 
 
 @document_parameters(PathOptions)
@@ -53,9 +54,10 @@ class SHPathIntegrator(mi.SamplingIntegrator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.options = options = PathOptions.from_properties(props)
-        self.scenes = SceneCache(lambda scene: ProductEnvironment(scene, options))
         # One environment sample and one BSDF sample per vertex.
-        self.chooser = StrategyChooser(1, 1)
+        self.scenes, self.chooser = shared_planning(
+            options, (), lambda scene: ProductEnvironment(scene, options),
+            lambda: StrategyChooser(1, 1, "path", options.plan, options.plan_file))
 
     def prepare_scene(self, scene, sensor=0):
         """The host-side work before a pass: state and choice (see ``sh_direct``'s)."""
@@ -65,6 +67,8 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         if not self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting) renders as configured
             self.prepare_scene(scene, sensor)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    plan = plan
 
     def choice(self, scene):
         """The strategy chosen for each material of ``scene`` (see ``sh_direct``)."""

@@ -6,9 +6,10 @@ import drjit as dr
 import mitsuba as mi
 
 from .chooser import StrategyChooser
-from .environment import ProductEnvironment, SceneCache
+from .environment import ProductEnvironment
 from .estimators import environment_ray_target, mis_weight, mitsuba_hit_pdf
 from .options import PRBOptions, document_parameters
+from .sharing import plan, shared_planning
 
 # Mitsuba's base of the replay integrators (primal pass, then the same paths again with adjoint
 # radiance); bound to the variant active when this module runs, like the class below.
@@ -89,10 +90,10 @@ class SHPRBIntegrator(RBIntegrator):
             with dr.suspend_grad():
                 return ProductEnvironment(scene, options)
 
-        self.scenes = SceneCache(build)
-        self._state, self._renders_since_build = None, 0
         # One environment sample and one BSDF sample per vertex, as in sh_path.
-        self.chooser = StrategyChooser(1, 1)
+        self.scenes, self.chooser = shared_planning(
+            options, (), build, lambda: StrategyChooser(1, 1, "path", options.plan, options.plan_file))
+        self._state, self._renders_since_build = None, 0
 
     # The per-scene state is built on the host before a pass is traced. A primal
     # render rebuilds it when its inputs changed (at most every rebuild_interval
@@ -110,13 +111,15 @@ class SHPRBIntegrator(RBIntegrator):
         def pilot_pass(pilot_spp, pilot_seed):
             return super(SHPRBIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
 
-        self.chooser.before_render(state, scene, sensor, pilot_pass)
+        self.chooser.before_render(state, scene, sensor, pilot_pass, self)
         return state
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting) renders as configured
             self.prepare_scene(scene, sensor)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    plan = plan
 
     def choice(self, scene):
         """The strategy chosen for each material of ``scene`` (see ``sh_direct``)."""

@@ -68,10 +68,40 @@ AUTO = "auto"
 
 STRATEGY_NAMES = tuple(s.label for s in Strategy)
 
+ESTIMATE = "estimate"
+"""``plan`` value: strategies' costs from the cost model (:mod:`.costs`); no clock decides."""
+MEASURE = "measure"
+"""``plan`` value: strategies' costs from pilot passes timed in the scene."""
+PLAN_MODES = (ESTIMATE, MEASURE)
+
 
 def strategy_named(name: str) -> Strategy:
     """The :class:`Strategy` of a ``strategy`` parameter value (not ``auto``)."""
     return Strategy[name.upper()]
+
+
+def parse_strategy(value: str) -> tuple[str, dict[str, str]]:
+    """A ``strategy`` parameter value -> (the default for every material, material name ->
+    strategy name).
+
+    The value is a comma-separated list: ``name=strategy`` entries set one material's
+    strategy (a material is named by its BSDF's id, as the reports name it), and at most
+    one bare entry sets the default (``auto`` when there is none): ``"product"``,
+    ``"copper=product,ground=environment"`` (the others ``auto``),
+    ``"environment,copper=product"``. Raises ``ValueError`` for a malformed list; the
+    names are checked against the scene when the plan is made."""
+    default, per_material = None, {}
+    for entry in (e.strip() for e in value.split(",")):
+        name, equals, strategy = (part.strip() for part in entry.partition("="))
+        if not equals:
+            if default is not None or not entry:
+                raise ValueError(f"'{value}' has {'an empty entry' if not entry else 'two defaults'}")
+            default = entry
+        elif not name or not strategy or name in per_material:
+            raise ValueError(f"'{value}': entry '{entry}' must be 'material=strategy', each material once")
+        else:
+            per_material[name] = strategy
+    return default or AUTO, per_material
 
 
 class StrategyTable:

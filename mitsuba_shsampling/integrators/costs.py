@@ -1,0 +1,158 @@
+"""What each environment strategy costs a pass: the cost model of the plan.
+
+The plan (:mod:`.chooser`) weighs each strategy's variance against the time it adds
+to a pass. By default that time comes from a :class:`CostModel`, not from a clock:
+the same scene, options and machine then give the same plan in every process (as
+FFTW plans by its estimate unless asked to measure). The model is, in order of
+preference:
+
+- the machine's own calibration (:func:`calibrate`, ``python -m mitsuba_shsampling
+  calibrate``): timed pilot passes of the built-in material studio, made once per
+  machine, variant and package code, and kept in the user's cache folder
+  (:func:`calibration_path`);
+- else :data:`SHIPPED`, measured the same way on the development machine (an AMD
+  EPYC with 2 cores, AVX2, ``llvm_ad_rgb``).
+
+``plan`` ``measure`` times the pilots in the user's scene instead
+(:meth:`CostModel.from_pass_times`), as the chooser always did before.
+
+Units: every figure is a share of the *lean* pass, the kernel without product code
+(every material on one of Mitsuba's own strategies, at Mitsuba's cost), for the same
+film and sample count. A strategy's figure is the time it adds to a pass per unit of
+the film's camera samples that hit its material: a material covering a fifth of the
+film on a strategy of cost 0.5 makes a pass 10 % longer. Where rays are dearer (a
+large mesh, deep paths) the same walk costs a smaller share, so the figures of
+``sh_direct`` and of the path integrators are calibrated apart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+
+import mitsuba as mi
+
+from ..build_cache import cache_folder, code_digest
+from .strategy import Strategy
+
+CALIBRATION_FILE = "costs-{variant}.json"
+"""Name of the calibration file in the cache folder (per variant)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CostModel:
+    """Time each strategy adds to a pass, in lean passes (module docstring)."""
+
+    product_code: float
+    """Every pass whose kernel holds the product's code, whatever its lanes run (the
+    product's registers and branches slow the lanes that skip it)."""
+    environment_only: float
+    """Per unit film share on ``environment_only`` (a second map sample and shadow ray
+    instead of the BSDF sample's occlusion query)."""
+    product_walk: float
+    """Per unit film share on ``product``, a lobe walked in SH."""
+    product_table: float
+    """Per unit film share on ``product``, a clamped cosine read from the cosine tables."""
+    product_only_walk: float
+    """Per unit film share on ``product_only``, SH walk."""
+    product_only_table: float
+    """Per unit film share on ``product_only``, cosine tables."""
+    source: str = "shipped"
+    """Where the figures come from: ``shipped``, the calibration file's path, or
+    ``measured in the scene``."""
+
+    def extra(self, strategy: Strategy, tabled: bool) -> float:
+        """Time per unit film share of a material on ``strategy`` (``tabled``: its lobe is
+        read from the cosine tables)."""
+        return {Strategy.ENVIRONMENT: 0.0, Strategy.ENVIRONMENT_ONLY: self.environment_only,
+                Strategy.PRODUCT: self.product_table if tabled else self.product_walk,
+                Strategy.PRODUCT_ONLY: self.product_only_table if tabled else self.product_only_walk}[strategy]
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_pass_times(cls, times: dict, shares: dict, source: str) -> "CostModel":
+        """The model of timed pilot passes.
+
+        ``times``: pilot -> pass time (s), with ``lean`` and ``environment`` and any of
+        ``environment_only``, ``product (cosine lobes)``, ``product``, ``product_only
+        (cosine lobes)``, ``product_only`` (each strategy on every material that can run
+        it; the ``(cosine lobes)`` ones on the materials with a cosine table alone).
+        ``shares``: the film shares those pilots switch: ``environment_only`` -> a share,
+        ``product`` and ``product_only`` -> (tabled share, walked share). A figure without
+        its pilot or share is :data:`SHIPPED`'s."""
+        lean = times["lean"]
+        if not lean > 0:  # nothing was timed (passes that launched no kernel)
+            return dataclasses.replace(SHIPPED, source=f"{source}: no time measured, shipped figures")
+        base = times.get(Strategy.ENVIRONMENT.label, lean)
+
+        def per_share(after: str, before: float, share: float, default: float) -> float:
+            if after not in times or share <= 0:
+                return default
+            return max(times[after] - before, 0.0) / share / lean
+
+        figures = {"product_code": max(base / lean - 1.0, 0.0),
+                   "environment_only": per_share(Strategy.ENVIRONMENT_ONLY.label, base,
+                                                 shares.get(Strategy.ENVIRONMENT_ONLY.label, 0.0),
+                                                 SHIPPED.environment_only)}
+        for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
+            walk, table = f"{strategy.label}_walk", f"{strategy.label}_table"
+            tabled, walked = shares.get(strategy.label, (0.0, 0.0))
+            tabled_pilot = f"{strategy.label} (cosine lobes)"
+            if tabled_pilot in times:
+                figures[table] = per_share(tabled_pilot, base, tabled, getattr(SHIPPED, table))
+                figures[walk] = per_share(strategy.label, times[tabled_pilot], walked, getattr(SHIPPED, walk))
+            else:  # one pilot for every lobe of the strategy: one figure for its kind(s)
+                both = per_share(strategy.label, base, tabled + walked, getattr(SHIPPED, walk))
+                figures[walk] = both if walked > 0 else getattr(SHIPPED, walk)
+                figures[table] = both if tabled > 0 else getattr(SHIPPED, table)
+        return cls(**figures, source=source)
+
+
+#: Measured with :func:`calibrate` on the development machine (module docstring), the
+#: median of three runs: ``python -m mitsuba_shsampling calibrate --runs 3``.
+SHIPPED_MODELS = {
+    "direct": CostModel(product_code=0.05, environment_only=0.30, product_walk=0.60, product_table=0.35,
+                        product_only_walk=0.75, product_only_table=0.45),
+    "path": CostModel(product_code=0.04, environment_only=0.15, product_walk=0.30, product_table=0.18,
+                      product_only_walk=0.40, product_only_table=0.25),
+}
+SHIPPED = SHIPPED_MODELS["direct"]
+
+
+def calibration_path(variant: str | None = None) -> str | None:
+    """Where this machine's calibration for ``variant`` (default: the current one) is kept,
+    None where the disk cache is off (:mod:`~mitsuba_shsampling.build_cache`)."""
+    folder = cache_folder()
+    return os.path.join(folder, CALIBRATION_FILE.format(variant=variant or mi.variant())) if folder else None
+
+
+def cost_model(kind: str) -> CostModel:
+    """The model of ``kind`` (``direct`` or ``path``): this machine's calibration where
+    one was made for this variant and package code, else the shipped one."""
+    path = calibration_path()
+    if path and os.path.exists(path):
+        try:
+            with open(path) as f:
+                stored = json.load(f)
+            if stored.get("code") == code_digest():
+                figures = stored["models"][kind]
+                return CostModel(**{**figures, "source": path})
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # unreadable or foreign: the shipped model (a calibration never decides correctness)
+    return SHIPPED_MODELS[kind]
+
+
+def save_calibration(models: dict, seconds: float, variant: str | None = None) -> str:
+    """Write ``models`` (kind -> :class:`CostModel`) as this machine's calibration; returns the path."""
+    path = calibration_path(variant)
+    if path is None:
+        raise OSError("the cache folder is off (SHSAMPLING_CACHE_DIR): a calibration has nowhere to go")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    record = {"code": code_digest(), "variant": variant or mi.variant(), "seconds": seconds,
+              "models": {kind: {k: v for k, v in m.as_dict().items() if k != "source"} for kind, m in models.items()}}
+    with open(path, "w") as f:
+        json.dump(record, f, indent=1)
+    return path

@@ -1,0 +1,213 @@
+"""Pilot passes: short renders of the integrator with every material forced to a strategy.
+
+Their images measure, in the scene itself, what the quadrature (:mod:`.quadrature`)
+leaves out: the variance that every strategy shares (antialiasing, texture edges,
+other emitters, deeper vertices) and how far each strategy's prediction is off
+(:func:`calibrate`). Their seeds are fixed (:data:`PILOT_SEED`), so the same scene
+gives the same images, and the same plan, in every process. Timed, the same passes
+also measure each strategy's cost in the scene (``plan`` ``measure``, and the
+per-machine calibration of :mod:`.costs`); the default plan times nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..frozen import held_inputs
+from ..report.metrics import pixel_variance
+from ..timing import kernel_time
+from .strategy import Strategy
+
+PILOT_LANES = 2**17
+"""Camera samples per pilot pass (spp is rounded up so that the film gets at least this many)."""
+
+PILOT_REPEATS = 4
+"""Timed pilot passes per strategy (interleaved; the fastest counts: whatever else
+runs on the machine only ever adds time, and adds it to one pass, not to a strategy)."""
+
+PILOT_IMAGES = 3
+"""Pilot passes per strategy when nothing is timed: images only, for the shared
+variance and the calibration."""
+
+PILOT_SEED = 0x5EED0000
+"""Seed of the first round of pilot passes. The passes of one round share a seed and
+the rounds differ: every strategy draws the same sampler dimensions, so within a round
+the camera rays, the BSDF samples and the rare paths (a glass block's caustic) are
+common to all pilots, and their variance cancels where the pilots are compared."""
+
+
+LEAN = "lean"
+"""Pilot key of the kernel without product code (:meth:`ProductEnvironment.drop_product`)."""
+
+LEAN_STRATEGY = Strategy.ENVIRONMENT
+"""What every material runs in the :data:`LEAN` pilot."""
+
+
+def cosine_pilot(strategy: Strategy) -> str:
+    """Pilot key of ``strategy`` on the materials with a clamped-cosine lobe alone (the
+    others on the environment strategy): with the pilot of ``strategy`` on every
+    material, it tells the cosine tables' cost from the SH walk's."""
+    return f"{strategy.label} (cosine lobes)"
+
+
+@dataclasses.dataclass
+class Pilots:
+    """What the pilot passes measured."""
+
+    pass_time: dict
+    """Pilot -> pass time (s): the kernels' execution time, the fastest of the timed passes."""
+    image_variance: dict = dataclasses.field(default_factory=dict)
+    """Pilot -> per-pixel variance of one pilot pass (channel-averaged, as the report's
+    MSE), averaged over the film (from its pilot images, one per round of pilots)."""
+    spp: int = 1
+    """Samples per pixel of a pilot pass."""
+    shared_variance: float | None = None
+    """``S`` once derived (:func:`calibrate`); kept when the scene's parameters change
+    and only the quadrature is redone."""
+    calibration: dict = dataclasses.field(default_factory=dict)
+    """Strategy -> factor on its quadrature variances that makes its pilot's prediction
+    match the pilot's images (:func:`calibrate`); 1 where missing."""
+
+
+def film_variance_factor(film: mi.Film, spp: int) -> float:
+    """Variance of a developed pixel per unit variance of one camera sample, at ``spp``.
+
+    A pixel is the filter-weighted mean sum w f / sum w of the samples around it
+    (``spp`` per pixel area), so its variance is sigma^2 int w^2 / (spp (int w)^2):
+    1 / spp for the box filter, about 1 / (3.1 spp) for the Gaussian. Mitsuba's
+    filters are separable, so the 2D ratio is the square of the 1D one."""
+    rfilter = film.rfilter()
+    radius = float(rfilter.radius())
+    x = np.linspace(-radius, radius, 4097)
+    w = np.asarray(rfilter.eval(mi.Float(x.astype(np.float32))).numpy(), dtype=np.float64)
+    ratio = np.mean(w * w) / (np.mean(w) ** 2 * 2 * radius)  # int w^2 / (int w)^2 on the even grid
+    return ratio ** 2 / spp
+
+
+def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], object],
+                       repeats: int = PILOT_REPEATS, spp: int = 1, timed: bool = True) -> Pilots:
+    """Pass time (s) and image variance per candidate: ``candidates`` maps a name to
+    the assignment (registry id -> strategy) it runs with, or to :data:`LEAN` for
+    the kernel without product code (every material on the environment strategy);
+    ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
+    ``timed``: one warm-up pass per kernel, then ``repeats`` timed rounds, candidates
+    interleaved; the fastest time per candidate, as kernel time
+    (:func:`~mitsuba_shsampling.timing.kernel_time`). Otherwise ``repeats`` rounds of
+    images and no time (``pass_time`` empty). Every round has its own seed
+    (:data:`PILOT_SEED`), and each pass's image counts towards its candidate's variance
+    (warm-ups included: only their time is compile-bound). ``env`` is left as it was found."""
+    table = env.strategies
+    saved = {key: table.of(key) for key in table.ids}
+    warps = env.warp, env.warp_plain
+
+    def configure(assignment):
+        env.warp, env.warp_plain = warps
+        if assignment == LEAN:
+            table.assign({key: LEAN_STRATEGY for key in table.ids})
+            env.drop_product()
+        else:
+            table.assign(assignment)
+
+    times = {name: [] for name in candidates}
+    images = {name: [] for name in candidates}
+    env.pilot_walks = True
+    try:
+        # Timed: round 0 compiles each kernel once (the render reuses it) and is not timed.
+        for round_ in range(repeats + 1 if timed else repeats):
+            for name, assignment in candidates.items():
+                configure(assignment)
+                if timed:
+                    image, elapsed = kernel_time(lambda: render_pass(PILOT_SEED + round_))
+                    if round_ > 0:
+                        times[name].append(elapsed)
+                else:
+                    image = render_pass(PILOT_SEED + round_)
+                if image is not None:
+                    images[name].append(np.asarray(image, dtype=np.float64))
+    finally:
+        env.warp, env.warp_plain = warps
+        env.pilot_walks = False
+        table.assign(saved)
+    # The report's measure of noise (report.metrics): per-pixel variance, channel-averaged.
+    variance = {name: float(np.mean(pixel_variance(np.stack(i)))) for name, i in images.items() if len(i) > 1}
+    return Pilots({name: min(t) for name, t in times.items() if t}, variance, spp)
+
+
+def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> Callable[[int, int], object]:
+    """``render(spp, seed)`` recorded once with ``dr.freeze`` and replayed for every later
+    seed and strategy table: pilot passes of one kernel pay its tracing once (a traced
+    pass of the product kernel costs several times its execution at pilot size). The
+    per-scene state's arrays are inputs of the recording (:func:`~mitsuba_shsampling.frozen.held_inputs`),
+    so a new table is read by the replay, and so are ``objects`` (the scene, sensor and
+    integrator that ``render`` uses). Where recording fails, the passes render traced."""
+    def one_pass(seed, spp, objects, inputs):
+        return render(spp, seed)
+
+    frozen, failed = dr.freeze(one_pass), []
+
+    def replay(spp: int, seed: int):
+        if failed:
+            return render(spp, seed)
+        collecting = gc.isenabled()
+        gc.disable()  # a collection during a recording can free arrays it cannot record (frozen.py)
+        try:
+            return frozen(dr.opaque(mi.UInt32, seed), spp, objects, held_inputs(env))
+        except RuntimeError:  # e.g. an integrator whose arrays are out of reach: traced from now on
+            failed.append(True)
+            return render(spp, seed)
+        finally:
+            if collecting:
+                gc.enable()
+    return replay
+
+
+CALIBRATION_RANGE = (0.5, 4.0)
+"""Bounds of a strategy's calibration factor: the pilot images are few (their
+variance has its own noise, heavy-tailed where rare paths are), so they correct
+the quadrature, but do not replace it."""
+
+
+def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, variance: dict,
+              rest: float) -> None:
+    """Set ``pilots.shared_variance`` and ``pilots.calibration`` from the pilots' film
+    variances (``measured``, quadrature units) against the quadrature's (``model``).
+
+    - ``S``: what the pilots without the product (the environment strategy, whose
+      quadrature is of Mitsuba's own sampling) have beyond the quadrature, at most
+      the least variance any pilot measured. Where they have less (the quadrature's
+      own noise under a sun), or more than that bound, the environment strategies'
+      variances are scaled to them instead.
+    - Each product strategy's pilot (every material that can run it on it, the
+      others on the environment strategy) then fixes a factor on that strategy's
+      variances: the pilot's measured variance, less ``S`` and the other
+      materials' part, over the quadrature's part, within :data:`CALIBRATION_RANGE`.
+    """
+    environment = [name for name in (LEAN, Strategy.ENVIRONMENT.label) if name in measured]
+    pilots.shared_variance, pilots.calibration = 0.0, {}
+    if not environment:
+        return
+    measured_env = float(np.mean([measured[name] for name in environment]))
+    model_env = model[Strategy.ENVIRONMENT.label]
+    # No pilot's film can have less variance than the part they all share: beyond the
+    # least of them, the environment's excess is the quadrature's own shortfall.
+    pilots.shared_variance = float(np.clip(measured_env - model_env, 0.0, min(measured.values())))
+    if measured_env - pilots.shared_variance != model_env and model_env > 0:
+        scale = float(np.clip((measured_env - pilots.shared_variance) / model_env, *CALIBRATION_RANGE))
+        pilots.calibration = {Strategy.ENVIRONMENT: scale, Strategy.ENVIRONMENT_ONLY: scale}
+    environment_scale = pilots.calibration.get(Strategy.ENVIRONMENT, 1.0)
+    for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
+        assignment = candidates.get(strategy.label)
+        if assignment is None or strategy.label not in measured:
+            continue
+        own = sum(variance[k][strategy] for k, s in assignment.items() if s == strategy)
+        others = rest + sum(variance[k][s] for k, s in assignment.items() if s != strategy)
+        if not np.isfinite(own + others) or own <= 1e-3 * model[strategy.label]:
+            continue  # the strategy barely shows in its pilot (or cannot be predicted)
+        observed = measured[strategy.label] - pilots.shared_variance - others * environment_scale
+        pilots.calibration[strategy] = float(np.clip(observed / own, *CALIBRATION_RANGE))

@@ -1,0 +1,93 @@
+"""Plans kept in files: ``plan_file``, and the measured plans kept like FFTW's wisdom.
+
+A plan file is JSON: the strategy of each material (by name), whether the kernel
+is lean, which cosine lobes read their tables, the options it was made with (every
+option but the plan's own, :attr:`~.options.ProductOptions.plan_key`) and the whole
+plan as the reports show it. It is loaded only for a scene with the same materials
+and the same options; otherwise a new plan is made and the file rewritten (with a
+warning that says why). A loaded plan runs exactly what it says: the same
+strategies, the same kernel.
+
+With ``plan`` ``measure`` and no ``plan_file``, the plan is kept in the cache
+folder (:mod:`~mitsuba_shsampling.build_cache`) under a key of the scene's content
+(every traversed parameter, the film's size) and the options, so a scene measured
+once is planned the same way in every later process.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+
+import mitsuba as mi
+
+from ..build_cache import cache_folder, content_key
+from ..traversal import content_parts
+from .strategy import strategy_named
+
+FORMAT = 1
+"""Version of the file layout."""
+
+
+def wisdom_path(scene: mi.Scene, sensor: mi.Sensor, options_key: str) -> str:
+    """Where a measured plan of this scene (content and film size) and these options is kept
+    ("" where the cache folder is off)."""
+    folder = cache_folder()
+    if not folder:
+        return ""
+    key = content_key(*content_parts(scene), tuple(sensor.film().crop_size()), options_key, mi.variant())
+    return os.path.join(folder, "plans", key + ".json")
+
+
+def save(path: str, choice, options_key: str) -> None:
+    """Write ``choice`` (:class:`~.chooser.StrategyChoice`) to ``path``."""
+    record = {"format": FORMAT, "options": options_key, "strategies": choice.assignment(), "lean": choice.lean,
+              "cosine_tables": list(choice.cosine_tables), "plan": choice.as_dict()}
+    try:
+        folder = os.path.dirname(os.path.abspath(path))
+        os.makedirs(folder, exist_ok=True)
+        with open(path, "w") as f:
+            json.dump(record, f, indent=1)
+    except OSError as err:
+        warnings.warn(f"mitsuba_shsampling: cannot write the plan file {path} ({err})", RuntimeWarning)
+
+
+def load(path: str, env, options_key: str):
+    """The plan in ``path`` applied to ``env`` (a :class:`~.chooser.StrategyChoice` with
+    ``mode`` ``file``), or None (with a warning where the file exists but does not fit)."""
+    from .chooser import MaterialChoice, StrategyChoice, apply_choice
+
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as f:
+            record = json.load(f)
+        stored = {name: strategy_named(label) for name, label in record["strategies"].items()}
+        fits = record.get("format") == FORMAT and record["options"] == options_key
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+        warnings.warn(f"{env.plugin}: the plan file {path} cannot be read ({err}); making a new plan", RuntimeWarning)
+        return None
+    by_name = {env.material_name(key): key for key in env.strategies.ids}
+    why = ("it was made with other options" if not fits
+           else "its materials are not this scene's" if set(stored) != set(by_name)
+           else next((f"material '{n}' cannot run '{s.label}' here" for n, s in stored.items()
+                      if s not in env.allowed(by_name[n])), None))
+    if why:
+        warnings.warn(f"{env.plugin}: the plan file {path} does not fit ({why}); making a new plan", RuntimeWarning)
+        return None
+    choice = {by_name[name]: strategy for name, strategy in stored.items()}
+    lean = bool(record["lean"]) and not any(s.uses_product for s in choice.values())
+    if env.lobes is not None and env.cosine_tables:
+        env.lobes.sample_from_tables({key for key in env.lobes.cosine_ids
+                                      if env.material_name(key) in set(record.get("cosine_tables", []))})
+    apply_choice(env, choice, lean)
+    plan = record.get("plan", {})
+    shown = {m["name"]: m for m in plan.get("materials", [])}
+    materials = [MaterialChoice(name, strategy, shown.get(name, {}).get("share", 0.0), {},
+                                shown.get(name, {}).get("predicted_gain", 1.0), shown.get(name, {}).get("forced", False))
+                 for name, strategy in stored.items()]
+    return StrategyChoice(materials, {}, plan.get("predicted_gain", 1.0), lean, 0.0,
+                          cosine_tables=sorted(record.get("cosine_tables", [])), mode="file",
+                          costs=plan.get("costs", {}))
+

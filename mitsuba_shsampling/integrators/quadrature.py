@@ -1,0 +1,186 @@
+"""The variance of each environment strategy at the camera's first hits, by quadrature.
+
+The chooser (:mod:`.chooser`) weighs these predictions against the strategies'
+costs. For every shading point the camera sees (:func:`camera_frames`, a
+stratified grid over the film) the second moment of each strategy's one-sample
+estimator is integrated over directions by importance-sampled quadrature
+(:func:`frame_variances`): the integrand is the BSDF value x radiance x
+*visibility* (a shadow ray per direction), so occluded skies and windows count
+as they will in the render. Fixed seeds: the same scene gives the same figures
+in every process.
+"""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .estimators import environment_ray_target
+from .strategy import Strategy
+
+FRAMES = 4096
+"""Camera shading points at most (a stratified grid over the film)."""
+
+DIRECTIONS = 64
+"""Quadrature directions per shading point."""
+
+
+def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
+    """The camera's first hits at a stratified grid of film positions (at most
+    ``count``, at most one per pixel): ``(si, bsdf, total)`` with only the hits on
+    smooth BSDFs kept, and ``total`` the number of film positions traced."""
+    size = sensor.film().crop_size()
+    width, height = int(size[0]), int(size[1])
+    aspect = width / height
+    nx = max(1, min(width, int(round(math.sqrt(count * aspect)))))
+    ny = max(1, min(height, int(round(count / nx))))
+    ix, iy = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
+    position = mi.Point2f(ix.ravel().astype(np.float32), iy.ravel().astype(np.float32))
+    ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
+    si = scene.ray_intersect(ray)
+    bsdf = si.bsdf(ray)
+    smooth = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    keep = mi.UInt32(np.flatnonzero(np.broadcast_to(smooth.numpy(), (nx * ny,))).astype(np.uint32))
+    return dr.gather(mi.SurfaceInteraction3f, si, keep), dr.gather(mi.BSDFPtr, bsdf, keep), nx * ny
+
+
+def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int, n_b: int,
+                    directions: int = DIRECTIONS, seed: int = 0, cosine_tables: bool = True) -> np.ndarray:
+    """Variance of the environment estimator at each shading point, per strategy.
+
+    With ``cosine_tables`` False the product of every lobe is its SH walk's, the cosine
+    lobes' included (else theirs is their table's, where the product has tables).
+
+    Returns an array (points, 4), indexed by :class:`Strategy`: the variance
+    (averaged over the colour channels, as the report's MSE is) of one lane's
+    environment estimate with ``n_e`` strategy samples and ``n_b`` BSDF samples
+    (power heuristic on sample-count fractions), or with ``n_e + n_b`` strategy
+    samples for the strategies that carry every sample. NaN where no product is
+    built. At points without a product lobe the product strategies are what such
+    a lane runs: the environment alone. Visibility counts: the integrand is
+    BSDF x radiance x a shadow ray's verdict, per channel.
+
+    The integrals E[w^2 f^2 / p] and E[w f] are estimated with ``directions``
+    samples per point from an equal mixture of the BSDF's sampling, the two
+    environment strategies and the two products (so that the sun, the lobe and
+    the BSDF's own peak are all found), with the balance heuristic over it.
+    """
+    points = dr.width(si)
+    if points == 0:
+        return np.zeros((0, len(Strategy)))
+    samples = mixture_samples(env, si, bsdf, directions, seed, cosine_tables)
+    return strategy_variances(samples, n_e, n_b, env.warp is not None, env.warp_plain is not None)
+
+
+def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directions: int, seed: int,
+                    cosine_tables: bool) -> dict:
+    """``directions`` directions per shading point from the equal mixture of
+    :func:`frame_variances`, on the device; returns, on the host as (points,
+    directions) float64 arrays, the integrand per channel (``channels``), the mixture's
+    pdf (``q``) and each strategy's pdf, and whether each point has a product lobe
+    (``lobed``, per point)."""
+    points = dr.width(si)
+    lanes = points * directions
+    index = dr.arange(mi.UInt32, lanes)
+    frame = index // directions
+    component = index % 5
+    si = dr.gather(mi.SurfaceInteraction3f, si, frame)
+    bsdf = dr.gather(mi.BSDFPtr, bsdf, frame)
+    rng = mi.PCG32(lanes, seed)
+    u0, u = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
+
+    ctx = mi.BSDFContext()
+    product = env.warp is not None
+    plain = env.warp_plain is not None
+    if product:
+        coeffs, proxy, has_lobe = env.lobes.coefficients_and_proxy(si, env.pyramid.grid_from_world, True,
+                                                                   env.cosine_tables and cosine_tables)
+    else:
+        coeffs, proxy, has_lobe = None, None, mi.Bool(False)
+
+    # One direction per lane, from the component its index selects. Lanes without
+    # a lobe draw their "product" components from the compensated environment.
+    bs, _ = bsdf.sample(ctx, si, u0, u, component == 0)
+    d_env, _ = env.env_directions.sample(u)
+    d_plain_env, _ = env.env_plain.sample(u)
+    d = dr.select(component == 0, si.to_world(bs.wo), dr.select(component == 4, d_plain_env, d_env))
+    if product:
+        d_product, _ = env.warp.sample(coeffs, u, proxy)
+        d = dr.select((component == 2) & has_lobe, d_product, d)
+    if plain:
+        d_plain, _ = env.warp_plain.sample(coeffs, u, proxy)
+        d = dr.select((component == 3) & has_lobe, d_plain, d)
+
+    wo = si.to_local(d)
+    value, p_bsdf = bsdf.eval_pdf(ctx, si, wo)
+    radiance = env.emitter.eval(environment_ray_target(d))
+    visible = ~env.scene.ray_test(si.spawn_ray(d))
+    # Per colour channel: the report's MSE averages the channels' squared errors
+    # (report.metrics), and a strategy can be good in luminance and poor in blue
+    # (a sun-following strategy in the shadow of a blue sky).
+    channels = [dr.select(visible, value[c] * radiance[c], 0.0) for c in range(len(value))]
+    p_env = env.env_directions.pdf(d)
+    p_plain_env = env.env_plain.pdf(d)
+    p_product = dr.select(has_lobe, env.warp.pdf(coeffs, d, proxy), 0.0) if product else mi.Float(0.0)
+    p_plain = dr.select(has_lobe, env.warp_plain.pdf(coeffs, d, proxy), 0.0) if plain else mi.Float(0.0)
+    mixture = 0.2 * (p_bsdf + p_env + p_plain_env + dr.select(has_lobe, p_product, p_env)
+                     + dr.select(has_lobe & plain, p_plain, p_env))
+    dr.eval(channels, mixture, p_bsdf, p_env, p_plain_env, p_product, p_plain, has_lobe)
+
+    def per_point(x):
+        return np.broadcast_to(np.asarray(x.numpy(), dtype=np.float64), (lanes,)).reshape(points, directions)
+
+    return {"channels": [per_point(f) for f in channels], "q": per_point(mixture), "bsdf": per_point(p_bsdf),
+            "environment": per_point(p_env), "environment_only": per_point(p_plain_env),
+            "product": per_point(p_product), "product_only": per_point(p_plain),
+            "lobed": per_point(mi.Float(has_lobe))[:, 0] > 0}
+
+
+def strategy_variances(samples: dict, n_e: int, n_b: int, product: bool, plain: bool) -> np.ndarray:
+    """Each strategy's variance per point (:func:`frame_variances`) from the
+    :func:`mixture_samples`, in float64 on the host.
+
+    Each strategy's variance is estimated as the mean of (Y - I)^2 p / q, Y = w f / p
+    its sample's value and I its mean: centred, so that an estimator with a large
+    mean and a small variance (a sun that the strategy follows closely) does not lose
+    it to cancellation in E[Y^2] - I^2."""
+    q, p_bsdf, lobed = samples["q"], samples["bsdf"], samples["lobed"]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        channels = [np.where(q > 0, f, 0.0) for f in samples["channels"]]
+        inv_q = np.where(q > 0, 1.0 / q, 0.0)
+
+        def one_sample_variance(weighted, pdf):
+            """Variance of weighted(d) / pdf(d), d ~ pdf: (Y - I)^2 over the pdf's support."""
+            mean = np.mean(weighted * inv_q, axis=1, keepdims=True)
+            value = np.where(pdf > 0, weighted / pdf, 0.0)
+            return np.mean(np.where(pdf > 0, (value - mean) ** 2 * pdf * inv_q, 0.0), axis=1)
+
+        def mis_variance(pdf):
+            frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
+            a2, b2 = (frac_e * pdf) ** 2, (frac_b * p_bsdf) ** 2
+            w = np.where(pdf > 0, a2 / (a2 + b2), 0.0) if n_b else np.where(pdf > 0, 1.0, 0.0)
+            w_b = np.where(p_bsdf > 0, 1.0 - w, 0.0)
+
+            def channel(f):
+                var = one_sample_variance(w * f, pdf) / n_e if n_e else 0.0
+                return var + (one_sample_variance(w_b * f, p_bsdf) / n_b if n_b else 0.0)
+            return np.mean([channel(f) for f in channels], axis=0)
+
+        def alone_variance(pdf):
+            return np.mean([one_sample_variance(f, pdf) for f in channels], axis=0) / (n_e + n_b)
+
+        result = np.full((len(q), len(Strategy)), np.nan)
+        result[:, Strategy.ENVIRONMENT] = mis_variance(samples["environment"])
+        result[:, Strategy.ENVIRONMENT_ONLY] = alone_variance(samples["environment_only"])
+        # A lane of a product material without a lobe (its back side, where the BSDF is
+        # black) samples the environment alone (ProductEnvironment.sample_environment).
+        if product:
+            result[:, Strategy.PRODUCT] = np.where(lobed, mis_variance(samples["product"]),
+                                                   result[:, Strategy.ENVIRONMENT])
+        if plain:
+            result[:, Strategy.PRODUCT_ONLY] = np.where(lobed, alone_variance(samples["product_only"]),
+                                                        result[:, Strategy.ENVIRONMENT_ONLY])
+    return result
