@@ -13,7 +13,8 @@ import sys
 from typing import TYPE_CHECKING
 
 from . import render
-from .command_line import DEFAULT_VARIANT, SAMPLERS, UsageError, max_depth_problem, set_variant
+from .command_line import (DEFAULT_VARIANT, SAMPLERS, UsageError, check_output_folder, max_depth_problem,
+                           set_variant)
 from .sweep import command as sweep
 from .report import DEFAULT_CACHE_DIR
 from .report.schema import CompareSettings
@@ -96,6 +97,7 @@ def _compare(args) -> int:
             raise UsageError(f"scene file not found: {path}")
     if args.envmap and not os.path.isfile(args.envmap):
         raise UsageError(f"environment map not found: {args.envmap}")
+    check_output_folder(args.out)
     if args.passes < 2:
         raise UsageError("--passes must be at least 2 (variance and bias need several passes)")
     if max_depth_problem(args.max_depth):
@@ -184,6 +186,7 @@ def _print_summary(report: Report) -> None:
 
 
 def _bench(args) -> int:
+    check_output_folder(args.out)
     set_variant(args.variant)
     from .report.bench import run_bench
 

@@ -185,6 +185,16 @@ def test_bad_options_exit_with_code_2_and_a_one_line_message(args, message, caps
     assert len(err) == 1 and message in err[0]
 
 
+@pytest.mark.parametrize("command", ["compare", "bench"])
+@pytest.mark.parametrize("out", ["report.txt", "report.txt/sub"])
+def test_an_out_folder_that_is_or_lies_in_a_file_is_refused_in_one_line_with_code_2(command, out, tmp_path,
+                                                                                  capsys):
+    (tmp_path / "report.txt").write_text("not a folder")
+    assert cli.main([command, "--out", str(tmp_path / out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("a file, not a folder") and "report.txt" in err[0]
+
+
 def test_max_depth_minus_one_compares_the_multi_bounce_methods_at_infinite_depth(tmp_path):
     code = cli.main(["compare", scenes.builtin_scenes()["sphere_diffuse"], "--out", str(tmp_path),
                      "--res", "8", "--spp", "1", "--passes", "2", "--ref-spp", "8", "--max-depth", "-1",
