@@ -11,7 +11,9 @@ found". This command is its drop-in::
 :func:`mitsuba_shsampling.scenes.builtin_scenes`). ``-D name=value`` sets a
 scene's ``$name`` parameter, as for ``mitsuba``. ``--integrator TYPE[:NAME=VALUE,...]``
 replaces the scene's integrator by a plugin of that type with those parameters
-(:func:`parse_integrator`; the others at their defaults); ``--spp``
+(:func:`parse_integrator`; the others at their defaults); ``--envmap FILE``
+replaces the scene's ``envmap`` emitter by one of that map, as ``compare
+--envmap`` does (:func:`.report.scene_setup.with_environment`); ``--spp``
 overrides the sensor's sample count. The image is rendered in passes with consecutive seeds
 (``--seed``, ``--seed + 1``, ...), shown by a progress bar, and their
 spp-weighted mean is written: the same estimate as one render with all the
@@ -56,6 +58,7 @@ def add_parser(subparsers, variant_default: str) -> argparse.ArgumentParser:
                         help="integrator replacing the scene's, with its parameters, e.g. "
                              "sh_path:max_depth=8,strategy=product (values: integer, else float, "
                              "else true/false, else text)")
+    parser.add_argument("--envmap", metavar="FILE", help="lat-long map replacing the scene's envmap emitter")
     parser.add_argument("--spp", type=int, help="samples per pixel, >= 1 (default: the scene's sampler)")
     parser.add_argument("--passes", type=int,
                         help=f"render passes (default: enough for at most {PASS_SPP} spp each)")
@@ -175,16 +178,21 @@ def render_file(args) -> dict:
     from tqdm import tqdm
 
     from .frozen import FrozenPass
+    from .report.scene_setup import with_environment
 
     path = resolve_scene(args.scene)
     defines = parse_defines(args.defines)
     plugin = parse_integrator(args.integrator) if args.integrator else None
+    if args.envmap and not os.path.isfile(args.envmap):
+        raise RenderError(f"environment map not found: {args.envmap}")
     output = args.output or os.path.splitext(os.path.basename(path))[0] + ".exr"
     check_output(output)
     try:
         scene = mi.load_file(path, parallel=False, **defines)  # stable registry ids: see scenes.load_scene
     except RuntimeError as err:
         raise RenderError(f"cannot load {path}: {_one_line(err)}") from None
+    if args.envmap:
+        scene = with_environment(scene, args.envmap)
     integrator = load_integrator(plugin) if plugin else scene.integrator()
     if not scene.sensors():
         raise RenderError(f"{path} has no sensor to render from")

@@ -80,6 +80,21 @@ def test_a_project_plugin_takes_integer_float_boolean_and_text_parameters(tmp_pa
     assert np.all(np.isfinite(np.array(mi.Bitmap(str(out)))))
 
 
+def test_envmap_replaces_the_scenes_map_and_keeps_its_integrator(tmp_path):
+    """``--envmap FILE`` renders what the scene renders with FILE as its map (here set through
+    the scene's own $envmap parameter), with the scene's integrator (direct, not Mitsuba's
+    default path)."""
+    path = scenes.builtin_scenes()["sphere_diffuse"]
+    out = tmp_path / "swapped.exr"
+    assert cli.main(["render", path, "-D", "res=8", "-D", "integrator=direct", "--envmap", scenes.STUDIO_MAP,
+                     "--spp", "2", "--seed", "5", "--no-progress", "-o", str(out)]) == 0
+    scene = mi.load_file(path, res="8", integrator="direct", envmap=scenes.STUDIO_MAP)
+    expected = np.array(mi.render(scene, spp=2, seed=5))
+    np.testing.assert_allclose(np.array(mi.Bitmap(str(out))), expected, rtol=1e-4, atol=1e-5)
+    default = np.array(mi.render(mi.load_file(path, res="8", integrator="direct"), spp=2, seed=5))
+    assert not np.allclose(expected, default, rtol=1e-2)  # another map: another image
+
+
 @pytest.mark.parametrize("argv, message", [
     (["missing.xml"], "scene file not found: missing.xml"),
     (["sphere_diffuse", "--integrator", "no_such_plugin_xyz"],
@@ -91,6 +106,8 @@ def test_a_project_plugin_takes_integer_float_boolean_and_text_parameters(tmp_pa
     (["sphere_diffuse", "--integrator", "path:max_depth"], "--integrator parameters are NAME=VALUE"),
     (["sphere_diffuse", "--integrator", ":max_depth=2"], "--integrator expects TYPE[:NAME=VALUE,...]"),
     (["sphere_diffuse", "--integrator", "path:max_depth=2,max_depth=3"], "sets 'max_depth' twice"),
+    (["sphere_diffuse", "--envmap", "no_such_map.exr"], "environment map not found: no_such_map.exr"),
+    (["area_light", "--envmap", scenes.STUDIO_MAP], "no envmap emitter to replace"),
     (["sphere_diffuse", "-D", "res"], "-D expects NAME=VALUE, got 'res'"),
     (["sphere_diffuse", "-D", "undeclared=1"], "Found unused parameters: - $undeclared=1"),
     (["sphere_diffuse", "--integrator", "sh_path", "--passes", "9", "--spp", "4"], "--passes must be in [1, spp = 4]"),
