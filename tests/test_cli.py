@@ -227,6 +227,18 @@ def test_every_method_counts_two_rays_per_sample_and_sh_methods_need_their_plugi
         assert (method.plugin is not None) == (method.product_sampling or method.oracle)
 
 
+def test_a_method_named_after_a_strategy_runs_exactly_that_strategy():
+    """``sh_product_only`` reads ``strategy=product_only`` in the report, never another strategy
+    that happens to behave alike under its other parameters."""
+    from mitsuba_shsampling.integrators.strategy import STRATEGY_NAMES
+
+    named = {m.name: m.name.removeprefix("sh_") for m in METHODS if m.name.removeprefix("sh_") in STRATEGY_NAMES}
+    assert named == {"sh_product_only": "product_only"}
+    for method in METHODS:
+        if method.name in named or "strategy" in method.integrator:
+            assert method.integrator.get("strategy") == named.get(method.name), method.name
+
+
 def test_admissible_spp_matches_what_each_sampler_renders():
     assert admissible_spp("independent", 23) == 23
     assert admissible_spp("stratified", 16) == 16

@@ -19,8 +19,7 @@ the family that ran, ``direct``, ``direct`` with ``mis_compensation``, envmap-on
 BSDF-only for direct lighting, ``path`` for multi-bounce): what a user gets by switching
 the integrator (:data:`.methods.DEFAULT_PLUGIN_METHOD`; the first project method when
 that one did not run). The project's other rows follow, each against the same best
-Mitsuba strategy and named by its plugin parameters (``sh_direct (emitter_samples=2,
-bsdf_samples=0, ...)``). When no project method ran, the factor is the winner over the
+Mitsuba strategy and named by its plugin parameters (``sh_direct (strategy=product_only)``). When no project method ran, the factor is the winner over the
 runner-up. Each interval is a paired
 bootstrap over passes: pass k of both methods is resampled together (the passes
 are i.i.d. across k; methods share seeds, so pairing also keeps their correlation).
@@ -56,7 +55,7 @@ MAX_REFERENCE_NOISE = 0.1
 def configuration(name: str, result: MethodResult, family: str) -> str:
     """The plugin configuration of method ``name`` as a user writes it: ``sh_direct (defaults)``
     for :data:`.methods.DEFAULT_PLUGIN_METHOD`, else the plugin and the parameters the method
-    sets, ``sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false, strategy=product)``."""
+    sets, ``sh_direct (emitter_samples=2, bsdf_samples=0, strategy=product_only)``."""
     integrator = dict(result.integrator or {"type": name})
     plugin = integrator.pop("type", name)
     if name == DEFAULT_PLUGIN_METHOD.get(family) or not integrator:
