@@ -402,3 +402,22 @@ def test_heavy_tails_are_flagged_only_for_the_methods_the_verdict_shows():
     methods["direct_misc"]["equal_time"]["tail_worse_than_baseline"] = ["brightest pixel 9 > 3 x direct's 2"]
     (row,) = verdict(report)
     assert [c for c in row.caveats if "heavy tails" in c][0].startswith("heavy tails: direct_misc is worse")
+
+
+def test_the_zoomed_crop_shows_noise_the_page_displays_not_a_highlight_it_clips():
+    """A highlight (radiance 50, noise 20) is white in every method's PNG; a grey patch with
+    visible noise is where the methods differ on the page, so the crop shows it."""
+    import types
+
+    from mitsuba_shsampling.report.compare import crop
+
+    rng = np.random.default_rng(1)
+    reference = np.full((48, 48, 3), 0.2)
+    reference[:8, :8] = 50.0
+    passes = np.repeat(reference[None], 8, axis=0)
+    passes[:, :8, :8] += rng.normal(0.0, 20.0, (8, 8, 8, 3))
+    passes[:, 32:40, 24:32] += rng.normal(0.0, 0.1, (8, 8, 8, 3))
+    method = types.SimpleNamespace(name="direct", family="direct")
+    x, y, size = crop([method], {"direct": types.SimpleNamespace(images=passes)},
+                      {"direct": types.SimpleNamespace(image=reference)}, exposure_value=1.0)
+    assert (x, y, size) == (24, 32, 8)

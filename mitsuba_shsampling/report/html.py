@@ -224,7 +224,8 @@ def _render_figures(page: _Page, run: RunResult, kind: str) -> str:
                          f'margin-left:-{x * crop_zoom}px;margin-top:-{y * crop_zoom}px"></div>'
                          f'<figcaption>{_e(name)}</figcaption></figure>')
     where = (f"<p>Zoomed crop, pixels [{x}, {x + size}) x [{y}, {y + size}) (where the methods' "
-             f"variance is largest), {crop_zoom}x:</p>" if size else "")
+             f"variance as displayed is largest, highlights the display clips left out), "
+             f"{crop_zoom}x:</p>" if size else "")
     return f"<div class='row'>{''.join(full)}</div>{where}<div class='row'>{''.join(crops)}</div>"
 
 
