@@ -421,3 +421,24 @@ def test_the_zoomed_crop_shows_noise_the_page_displays_not_a_highlight_it_clips(
     x, y, size = crop([method], {"direct": types.SimpleNamespace(images=passes)},
                       {"direct": types.SimpleNamespace(image=reference)}, exposure_value=1.0)
     assert (x, y, size) == (24, 32, 8)
+
+
+@pytest.mark.parametrize("quantity, ratio, low, high, shown", [
+    ("efficiency", 0.833, 0.725, 0.953, "loses"),  # less efficient, and the interval says so
+    ("efficiency", 1.25, 1.1, 1.4, "wins"),
+    ("efficiency", 0.98, 0.9, 1.05, "tie"),
+    ("MSE", 0.8, 0.7, 0.9, "wins"),
+    ("MSE", 1.2, 1.1, 1.3, "loses"),
+    ("MSE", 1.0, 0.95, 1.05, "tie"),
+])
+def test_a_verdict_cell_is_green_for_a_win_red_for_a_loss_and_neutral_for_a_tie(quantity, ratio, low, high, shown):
+    from mitsuba_shsampling.report.html import _cell_html
+    from mitsuba_shsampling.report.schema import VerdictCell
+
+    cell = VerdictCell(quantity=quantity, winner="direct_misc", winner_is_project=False, numerator="sh_direct",
+                       denominator="direct_misc", ratio=ratio, low=low, high=high)
+    (classes, word), = re.findall(r'<td class="([^"]*)"><b>sh_direct \(defaults\)</b> (\w+)<br>',
+                                  _cell_html(cell, "sh_direct (defaults)"))
+    colour = {"wins": "win", "loses": "loss", "tie": None}[shown]
+    assert word == shown
+    assert ({"win", "loss"} & set(classes.split())) == ({colour} if colour else set())

@@ -30,7 +30,7 @@ th, td { border: 1px solid #bbb; padding: 3px 6px; text-align: right; }
 .scroll { max-width: 100%; overflow-x: auto; } .scroll td { white-space: nowrap; }
 th { background: #eee; } td.name { text-align: left; }
 table#verdict { font-size: 1em; } table[id^=verdict] td, table[id^=verdict] th { text-align: left; }
-td.win { background: #d7f5d0; font-weight: bold; }
+td.win { background: #d7f5d0; font-weight: bold; } td.loss { background: #f8d3cf; font-weight: bold; }
 .row { display: flex; flex-wrap: wrap; gap: 8px; }
 figure { margin: 0; text-align: center; font-size: 0.75em; }
 figure img { image-rendering: pixelated; min-width: 256px; }
@@ -75,11 +75,28 @@ class _Page:
                 f'<figcaption>{cap}</figcaption></figure>')
 
 
+def outcome(low: float | None, high: float | None, lower_is_better: bool) -> str:
+    """What the interval [low, high] of a ratio says of its numerator: ``win`` or ``loss`` when
+    it lies on one side of 1, ``tie`` when it contains 1, ``unknown`` without a finite interval.
+    It is also the cell's class: ``win`` green, ``loss`` red, the others neutral."""
+    if low is None or high is None or not (math.isfinite(low) and math.isfinite(high)):
+        return "unknown"
+    if low <= 1.0 <= high:
+        return "tie"
+    return "win" if (high < 1.0) == lower_is_better else "loss"
+
+
+#: How a verdict cell names the numerator's outcome.
+OUTCOME_WORDS = {"win": "wins", "loss": "loses", "tie": "tie", "unknown": "n/a"}
+
+
 def _cell_html(cell: VerdictCell, label: str | None) -> str:
-    """A verdict cell: the numerator (named ``label``) against the denominator, highlighted when
-    the interval says the numerator is the better of the two; the overall winner below."""
+    """A verdict cell: the numerator (named ``label``) against the denominator, green when the
+    interval says the numerator is the better of the two, red when the worse, neutral on a
+    tie; the overall winner below."""
+    result = outcome(cell.low, cell.high, cell.quantity == "MSE")
     best = "lowest MSE" if cell.quantity == "MSE" else "highest efficiency"
-    return (f'<td class="{"win" if cell.numerator_better else "name"}"><b>{_e(label or cell.numerator)}</b><br>'
+    return (f'<td class="name {result}"><b>{_e(label or cell.numerator)}</b> {OUTCOME_WORDS[result]}<br>'
             f'<small>{_num(cell.ratio, 3)}x the {cell.quantity} of {_e(cell.denominator)} '
             f'[{_num(cell.low, 3)}, {_num(cell.high, 3)}]; {best} of all: {_e(cell.winner)}</small></td>')
 
@@ -109,12 +126,13 @@ def _verdict_section(report: Report) -> str:
     table = f'<table id="verdict">{head}{"".join(body)}</table>'
     legend = (f"<p>First: the project's plugin at its defaults (what switching the integrator gives) "
               f"against the best of Mitsuba's own strategies in the same run (or, with no project "
-              f"method, the winner against the runner-up), highlighted when its interval says it is "
-              f"the better of the two: MSE ratio at equal samples (below 1: the first is better), efficiency ratio "
+              f"method, the winner against the runner-up), green where its interval says it is "
+              f"the better of the two, red where the worse, uncoloured where the interval contains 1 "
+              f"(a tie): MSE ratio at equal samples (below 1: the first is better), efficiency ratio "
               f"1/(MSE x time) at equal time (above 1: the first is better), from the renders at equal "
               f"time and from the equal-sample passes (the same quantity: at one seed and spp the noise "
               f"both methods draw alike cancels there); in brackets the "
-              f"{verdict.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
+              f"{metrics.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
     if others:
         legend += ('<p>The project\'s other configurations, each against the same best Mitsuba strategy:</p>'
                    f'<table id="verdict-others">{head.replace("<th>caveats</th>", "")}{"".join(others)}</table>')
@@ -235,8 +253,8 @@ def _materials_table(rows: list[MaterialEntry]) -> str:
         return ""
     project = list(rows[0].error_ratio)
     chose = [n for n in project if any(n in row.strategy for row in rows)]
-    head = "".join(f"<th>{_e(n)}: error / best Mitsuba, equal samples</th><th>{_e(n)}: equal time</th>"
-                   f"<th>{_e(n)}: share of its error</th>"
+    head = "".join(f"<th>{_e(n)}: error ratio to the best Mitsuba there, equal samples</th>"
+                   f"<th>{_e(n)}: error ratio, equal time</th><th>{_e(n)}: share of its error</th>"
                    + (f"<th>{_e(n)}: strategy (predicted variance gain)</th>" if n in chose else "")
                    for n in project)
     out = [f"<table><tr><th>material</th><th>plugin</th><th>pixels</th><th>best Mitsuba strategy there "
@@ -247,8 +265,11 @@ def _materials_table(rows: list[MaterialEntry]) -> str:
         for n in project:
             for kind in ("equal_spp", "equal_time"):
                 ratio = row.error_ratio[n].get(kind)
-                style = ' class="bad"' if ratio is not None and ratio > 1 else ""
-                cells.append(f"<td{style}>{_num(ratio, 3)}</td>")
+                low, high = ((row.error_ratio_interval or {}).get(n) or {}).get(kind) or (None, None)
+                result = outcome(low, high, lower_is_better=True)
+                interval = (f"{metrics.INTERVAL:.0%} interval [{low:.3g}, {high:.3g}]" if result != "unknown"
+                            else "no interval")
+                cells.append(f'<td class="{result}" title="{OUTCOME_WORDS[result]}: {interval}">{_num(ratio, 3)}</td>')
             cells.append(f"<td>{_num(row.error_share.get(n), 2)}</td>")
             if n in chose:
                 picked = row.strategy.get(n)
@@ -282,10 +303,14 @@ def _scene_section(page: _Page, scene: SceneResult) -> None:
         page.add(_metrics_table(run))
         for family, rows in (run.materials or {}).items():
             page.add(f"<h4>Per material ({_e(family)} family): where each method wins and loses</h4>"
-                     "<p>Each pixel counts for the material its centre sees. An error ratio below 1 "
-                     "beats every Mitsuba strategy on that material's pixels (the best one there is "
-                     "named); the error share is the part of the method's squared error, summed over "
-                     "the image, that falls on the material.</p>")
+                     "<p>Each pixel counts for the material its centre sees. The error ratio is the "
+                     "method's squared error on that material's pixels over the best Mitsuba "
+                     "strategy's there (named), coloured by its "
+                     f"{metrics.INTERVAL:.0%} paired bootstrap interval over passes (in the cell's "
+                     "tooltip): green where the "
+                     "interval lies below 1 (it beats every Mitsuba strategy there), red where above, "
+                     "uncoloured where it contains 1. The error share is the part of the method's "
+                     "squared error, summed over the image, that falls on the material.</p>")
             page.add(f'<div class="scroll">{_materials_table(rows)}</div>')
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
             page.add(f"<h4>Renders at {title} (first pass)</h4>{_render_figures(page, run, kind)}")

@@ -147,6 +147,8 @@ class MaterialEntry:
     :param error_ratio: method -> {"equal_spp": r, "equal_time": r}: the method's expected
         squared error summed over these pixels, over the best Mitsuba strategy's.
     :param best_mitsuba: {"equal_spp": name, "equal_time": name} of that strategy.
+    :param error_ratio_interval: method -> {"equal_spp": [low, high], "equal_time": ...}: the
+        paired bootstrap interval of each error ratio (None in reports from before it).
     :param error_share: method -> share of the method's equal-sample image error on these pixels.
     :param strategy: method -> {"strategy": name, "predicted_gain": variance of the material's
         best environment strategy over the chosen one's}, for methods that chose per material.
@@ -159,6 +161,7 @@ class MaterialEntry:
     best_mitsuba: dict[str, str | None]
     error_share: dict[str, float | None]
     strategy: dict[str, dict] = dataclasses.field(default_factory=dict)
+    error_ratio_interval: dict[str, dict[str, list[float]]] | None = None
 
 
 @dataclasses.dataclass

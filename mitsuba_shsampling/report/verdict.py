@@ -19,10 +19,11 @@ the family that ran, ``direct``, ``direct`` with ``mis_compensation``, envmap-on
 BSDF-only for direct lighting, ``path`` for multi-bounce): what a user gets by switching
 the integrator (:data:`.methods.DEFAULT_PLUGIN_METHOD`; the first project method when
 that one did not run). The project's other rows follow, each against the same best
-Mitsuba strategy and named by its plugin parameters (``sh_direct (strategy=product_only)``). When no project method ran, the factor is the winner over the
-runner-up. Each interval is a paired
-bootstrap over passes: pass k of both methods is resampled together (the passes
-are i.i.d. across k; methods share seeds, so pairing also keeps their correlation).
+Mitsuba strategy and named by its plugin parameters (``sh_direct (strategy=product_only)``).
+When no project method ran, the factor is the winner over the runner-up. Each interval is
+the paired bootstrap over passes of :func:`.metrics.paired_bootstrap`: pass k of both methods
+is resampled together (the passes are i.i.d. across k; methods share seeds, so pairing also
+keeps their correlation).
 Reference rows (the oracle) are no contenders: they appear in the caveats only.
 """
 
@@ -33,13 +34,10 @@ import math
 import numpy as np
 
 from .methods import DEFAULT_PLUGIN_METHOD, MITSUBA, PROJECT, REFERENCE, role_of
-from .metrics import BIAS_ALPHA, TAIL_PERCENTILE
+from .metrics import BIAS_ALPHA, INTERVAL, TAIL_PERCENTILE, paired_bootstrap
 from .schema import (CONTEST_TITLES, MethodResult, PassResult, Report, RunResult, VerdictCell, VerdictOther,
                      VerdictRow, load_report)
 
-#: Bootstrap resamples and the two-sided coverage of the interval.
-BOOTSTRAP_RESAMPLES = 2000
-INTERVAL = 0.90
 #: A baseline pass shorter than this is dominated by per-launch overhead and timer noise.
 MIN_PASS_TIME_S = 0.020
 #: The baseline renders the same spp at equal samples and at equal time; per-sample times of
@@ -71,15 +69,9 @@ def _ratio(x: float, y: float) -> float:
 
 def _paired_bootstrap(statistic, a: PassResult, b: PassResult, seed: int = 0) -> tuple[float, float]:
     """Interval of statistic(a_resampled) / statistic(b_resampled), pass indices shared
-    (NaN if any resampled ratio is: see :class:`VerdictCell`)."""
+    (:func:`.metrics.paired_bootstrap`; NaN if any resampled ratio is: see :class:`VerdictCell`)."""
     k = min(len(a.error.mse_per_pass), len(b.error.mse_per_pass))
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, k, size=(BOOTSTRAP_RESAMPLES, k))
-    ratios = np.array([_ratio(statistic(a, i), statistic(b, i)) for i in idx])
-    if not np.all(np.isfinite(ratios)):
-        return math.nan, math.nan
-    tail = (1 - INTERVAL) / 2
-    return float(np.quantile(ratios, tail)), float(np.quantile(ratios, 1 - tail))
+    return paired_bootstrap(lambda idx: _ratio(statistic(a, idx), statistic(b, idx)), k, seed)
 
 
 def _mse(entry: PassResult, idx=None) -> float:
