@@ -255,3 +255,30 @@ def test_warped_points_figure_draws_sampler_output_and_rejects_bad_shapes():
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="shape"):
         figures.warped_points_figure(density, lambda u: u[:, :1], n_points=64)
+
+
+def verdict_of(mse_per_pass: dict[str, list[float]], time_s: float = 0.1):
+    """The verdict rows of a one-scene report whose methods have these per-pass MSEs."""
+    from mitsuba_shsampling.report.verdict import verdict
+
+    def phase(values):
+        return {"error": {"mse_per_pass": values, "mse": float(np.mean(values)), "non_finite": 0},
+                "times_s": [time_s] * len(values), "time_s": time_s, "spp": 8, "time_budget_s": time_s,
+                "budget_method": "direct", "tail_worse_than_baseline": [], "bias": {"flagged": False, "p_value": 0.5}}
+    methods = {n: {"family": "direct", "equal_spp": phase(v), "equal_time": phase(v)} for n, v in mse_per_pass.items()}
+    return verdict({"scenes": [{"scene": "s", "path": "s.xml", "references": {},
+                                "runs": [{"sampler": "independent", "methods": methods}]}]})
+
+
+def test_the_printed_verdict_says_best_only_where_the_interval_and_the_caveats_allow(capsys):
+    cli._print_verdict(verdict_of({"direct": [1.0, 1.3, 0.7, 1.0], "sh_direct": [1.3, 0.7, 1.0, 1.0]}))
+    tied = capsys.readouterr().out
+    assert "best" not in tied and tied.count("no clear winner (") == 3
+    cli._print_verdict(verdict_of({"direct": [1.0, 1.1, 0.9, 1.0], "sh_direct": [0.5, 0.55, 0.45, 0.5]},
+                                  time_s=0.005))
+    lines = capsys.readouterr().out.splitlines()
+    assert "caveat: time budget too small to be meaningful" in "\n".join(lines)
+    contests = {line.split(":")[0].strip(): line for line in lines if " / direct " in line}
+    assert "sh_direct best of all" in contests["equal samples"]
+    for title in ("equal time", "equal time, from the equal-sample passes"):
+        assert "best" not in contests[title] and "no winner: time budget too small" in contests[title]

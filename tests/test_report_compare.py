@@ -137,7 +137,7 @@ def test_verdict_names_direct_the_clear_winner_over_bsdf_sampling_of_a_small_lig
     page = (tmp_path / "out" / "index.html").read_text()
     verdict_table = page[page.index('<table id="verdict">'):]
     verdict_table = verdict_table[:verdict_table.index("</table>")]
-    assert verdict_table.count('<td class="win"><b>direct</b>') == 3  # every kind of contest
+    assert verdict_table.count('<td class="name win"><b>direct</b> wins') == 3  # every kind of contest
     assert page.index('id="verdict"') < page.index("<details>")  # verdict on top, settings at the bottom
 
 
@@ -438,7 +438,51 @@ def test_a_verdict_cell_is_green_for_a_win_red_for_a_loss_and_neutral_for_a_tie(
     cell = VerdictCell(quantity=quantity, winner="direct_misc", winner_is_project=False, numerator="sh_direct",
                        denominator="direct_misc", ratio=ratio, low=low, high=high)
     (classes, word), = re.findall(r'<td class="([^"]*)"><b>sh_direct \(defaults\)</b> (\w+)<br>',
-                                  _cell_html(cell, "sh_direct (defaults)"))
+                                  _cell_html(cell, "sh_direct (defaults)", "equal_spp", []))
     colour = {"wins": "win", "loses": "loss", "tie": None}[shown]
     assert word == shown
     assert ({"win", "loss"} & set(classes.split())) == ({colour} if colour else set())
+
+
+def test_best_of_all_is_said_only_where_the_winners_interval_over_the_runner_up_excludes_1():
+    from mitsuba_shsampling.report.verdict import verdict, winner_text
+
+    clear = {"direct": verdict_entry([1.0, 1.1, 0.9, 1.0]), "sh_direct": verdict_entry([0.5, 0.55, 0.45, 0.5])}
+    (row,) = verdict(one_cell_report(clear))
+    assert row.equal_spp.runner_up == "direct" and row.equal_spp.winner_high < 1
+    assert winner_text(row.equal_spp, "equal_spp", row.caveats).startswith("sh_direct best of all")
+    # The same MSE, pass for pass in a different order: the interval contains 1.
+    tie = {"direct": verdict_entry([1.0, 1.3, 0.7, 1.0]), "sh_direct": verdict_entry([1.3, 0.7, 1.0, 1.0])}
+    (row,) = verdict(one_cell_report(tie))
+    assert any("no clear winner" in c for c in row.caveats)
+    text = winner_text(row.equal_spp, "equal_spp", row.caveats)
+    assert "best" not in text and text.startswith("no clear winner")
+
+
+def test_no_winner_is_named_at_equal_time_beside_a_caveat_that_voids_the_times():
+    from mitsuba_shsampling.report.verdict import verdict, winner_text
+
+    methods = {"direct": verdict_entry([1.0, 1.1, 0.9, 1.0], time_s=0.005),
+               "sh_direct": verdict_entry([0.5, 0.55, 0.45, 0.5], time_s=0.005)}
+    for entry in methods.values():
+        for kind in ("equal_spp", "equal_time"):
+            entry[kind]["time_budget_s"] = 0.005
+    (row,) = verdict(one_cell_report(methods))
+    assert any(c.startswith("time budget too small to be meaningful") for c in row.caveats)
+    for kind in ("equal_time", "time_normalised"):
+        text = winner_text(getattr(row, kind), kind, row.caveats)
+        assert "best" not in text and text.startswith("no winner: time budget too small")
+    assert "best of all" in winner_text(row.equal_spp, "equal_spp", row.caveats)  # samples need no clock
+
+
+def test_the_page_never_says_best_of_all_in_a_tied_cell():
+    from mitsuba_shsampling.report.html import _verdict_section
+    from mitsuba_shsampling.report.schema import load_report
+    from mitsuba_shsampling.report.verdict import verdict
+
+    tie = {"direct": verdict_entry([1.0, 1.3, 0.7, 1.0]), "sh_direct": verdict_entry([1.3, 0.7, 1.0, 1.0])}
+    report = load_report(one_cell_report(tie))
+    report.verdict = verdict(report)
+    page = _verdict_section(report)
+    assert "best" not in page.replace("best Mitsuba", "").replace("best of Mitsuba", "")
+    assert "no clear winner" in page

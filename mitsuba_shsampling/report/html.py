@@ -90,21 +90,22 @@ def outcome(low: float | None, high: float | None, lower_is_better: bool) -> str
 OUTCOME_WORDS = {"win": "wins", "loss": "loses", "tie": "tie", "unknown": "n/a"}
 
 
-def _cell_html(cell: VerdictCell, label: str | None) -> str:
-    """A verdict cell: the numerator (named ``label``) against the denominator, green when the
-    interval says the numerator is the better of the two, red when the worse, neutral on a
-    tie; the overall winner below."""
+def _cell_html(cell: VerdictCell, label: str | None, kind: str, caveats: list[str]) -> str:
+    """A verdict cell of contest ``kind``: the numerator (named ``label``) against the
+    denominator, green when the interval says the numerator is the better of the two, red when
+    the worse, neutral on a tie; the overall winner below, named only as far as the interval
+    and the row's ``caveats`` allow (:func:`.verdict.winner_text`)."""
     result = outcome(cell.low, cell.high, cell.quantity == "MSE")
-    best = "lowest MSE" if cell.quantity == "MSE" else "highest efficiency"
     return (f'<td class="name {result}"><b>{_e(label or cell.numerator)}</b> {OUTCOME_WORDS[result]}<br>'
             f'<small>{_num(cell.ratio, 3)}x the {cell.quantity} of {_e(cell.denominator)} '
-            f'[{_num(cell.low, 3)}, {_num(cell.high, 3)}]; {best} of all: {_e(cell.winner)}</small></td>')
+            f'[{_num(cell.low, 3)}, {_num(cell.high, 3)}]; {_e(verdict.winner_text(cell, kind, caveats))}'
+            f'</small></td>')
 
 
-def _cells_html(row, label: str | None) -> str:
+def _cells_html(row, label: str | None, caveats: list[str]) -> str:
     """A verdict row's three cells (a report from before the third shows n/a there)."""
-    cells = [getattr(row, kind) for kind in CONTEST_TITLES]
-    return "".join(_cell_html(c, label) if c is not None else '<td class="name">n/a</td>' for c in cells)
+    return "".join(_cell_html(getattr(row, kind), label, kind, caveats) if getattr(row, kind) is not None
+                   else '<td class="name">n/a</td>' for kind in CONTEST_TITLES)
 
 
 def _verdict_section(report: Report) -> str:
@@ -118,10 +119,10 @@ def _verdict_section(report: Report) -> str:
     for r in rows:
         lighting = "direct" if r.family == DIRECT else "multi-bounce"
         where = f'<td>{_e(r.scene)}</td><td>{_e(r.sampler)}</td><td>{lighting}</td>'
-        cells = _cells_html(r, r.configuration)
+        cells = _cells_html(r, r.configuration, r.caveats)
         body.append(f'<tr>{where}{cells}<td>{len(r.caveats)}</td></tr>')
         for other in r.others or []:
-            cells = _cells_html(other, other.configuration)
+            cells = _cells_html(other, other.configuration, r.caveats)
             others.append(f"<tr>{where}{cells}</tr>")
     table = f'<table id="verdict">{head}{"".join(body)}</table>'
     legend = (f"<p>First: the project's plugin at its defaults (what switching the integrator gives) "

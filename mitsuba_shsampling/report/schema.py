@@ -277,6 +277,9 @@ class VerdictCell:
     [``low``, ``high``] its bootstrap interval. All three are NaN (``n/a`` in the report) when
     the ratio has no finite value: a zero MSE (an all-black environment renders every pixel
     exactly) or a non-finite one (every pixel of a pass non-finite).
+    ``winner`` is first of all the contenders by point estimate; [``winner_low``,
+    ``winner_high``] the interval of its ratio to the ``runner_up``'s (None and NaN in reports
+    from before them, and with a single contender).
     """
 
     quantity: str
@@ -287,11 +290,20 @@ class VerdictCell:
     ratio: float
     low: float
     high: float
+    runner_up: str | None = None
+    winner_low: float = math.nan
+    winner_high: float = math.nan
 
     @property
     def decided(self) -> bool:
         """The interval excludes 1: the data decide between numerator and denominator."""
         return math.isfinite(self.low) and math.isfinite(self.high) and not (self.low <= 1.0 <= self.high)
+
+    @property
+    def winner_decided(self) -> bool:
+        """The interval of the winner over the runner-up excludes 1: it is first of all."""
+        finite = math.isfinite(self.winner_low) and math.isfinite(self.winner_high)
+        return finite and not (self.winner_low <= 1.0 <= self.winner_high)
 
     @property
     def numerator_better(self) -> bool:

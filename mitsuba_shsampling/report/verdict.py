@@ -111,16 +111,49 @@ def _cell(results: dict[str, MethodResult], kind: str, project: list[str], mitsu
 
     order = sorted(entries, key=rank)
     best_of = lambda names: min(names, key=rank)  # noqa: E731
-    winner = order[0]
+    winner, runner_up = order[0], order[1] if len(order) > 1 else None
     if project and mitsuba:
         numerator, denominator = lead or best_of(project), best_of(mitsuba)
     else:
-        numerator, denominator = winner, order[1] if len(order) > 1 else winner
+        numerator, denominator = winner, runner_up or winner
     a, b = entries[numerator], entries[denominator]
     low, high = _paired_bootstrap(statistic, a, b)
+    winner_low, winner_high = (_paired_bootstrap(statistic, entries[winner], entries[runner_up])
+                               if runner_up else (math.nan, math.nan))
     return VerdictCell(quantity=quantity, winner=winner, winner_is_project=winner in project,
                        numerator=numerator, denominator=denominator,
-                       ratio=_ratio(statistic(a), statistic(b)), low=low, high=high)
+                       ratio=_ratio(statistic(a), statistic(b)), low=low, high=high,
+                       runner_up=runner_up, winner_low=winner_low, winner_high=winner_high)
+
+
+#: The caveats that void the times of a row, by the start of their text: every efficiency
+#: ratio (both equal-time contests), or only the equal-time renders'.
+TIME_BUDGET_TOO_SMALL = "time budget too small to be meaningful"
+TIME_BUDGET_UNRELIABLE = "time budget unreliable"
+EQUAL_TIME_TOO_COARSE = "equal-time spp too coarse to compare"
+VOIDED_CONTESTS = {TIME_BUDGET_TOO_SMALL: ("equal_time", "time_normalised"),
+                   TIME_BUDGET_UNRELIABLE: ("equal_time", "time_normalised"),
+                   EQUAL_TIME_TOO_COARSE: ("equal_time",)}
+
+
+def voiding_caveat(kind: str, caveats: list[str]) -> str | None:
+    """The first of a row's ``caveats`` that voids its contest ``kind`` (:data:`KINDS`), by
+    its opening words (:data:`VOIDED_CONTESTS`); None if none does."""
+    return next((start for c in caveats for start, kinds in VOIDED_CONTESTS.items()
+                 if kind in kinds and c.startswith(start)), None)
+
+
+def winner_text(cell: VerdictCell, kind: str, caveats: list[str]) -> str:
+    """How reports name the winner of a contest: "best of all" only where the interval of the
+    winner over the runner-up excludes 1 and no caveat voids the contest's times."""
+    void = voiding_caveat(kind, caveats)
+    if void is not None:
+        return f"no winner: {void} (see the caveats)"
+    if not cell.winner_decided:
+        return f"no clear winner ({cell.winner} first by point estimate; {cell.runner_up or '-'} within its interval)"
+    best = "lowest MSE" if cell.quantity == "MSE" else "highest efficiency"
+    return (f"{cell.winner} best of all ({best}: [{cell.winner_low:.3g}, {cell.winner_high:.3g}] x "
+            f"{cell.runner_up}'s)")
 
 
 def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, contenders: list[str],
@@ -136,7 +169,7 @@ def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, c
     first_timed = results[names[0]].equal_time
     base_time = (first_timed.time_budget_s if first_timed else None) or 0.0
     if 0.0 < base_time < MIN_PASS_TIME_S:
-        notes.append(f"time budget too small to be meaningful: a {baseline} pass takes "
+        notes.append(f"{TIME_BUDGET_TOO_SMALL}: a {baseline} pass takes "
                      f"{1e3 * base_time:.1f} ms (per-launch overhead and timer noise weigh on every "
                      f"time; raise --res or --spp)")
     base = results.get(baseline)
@@ -144,7 +177,7 @@ def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, c
         per_sample = [p.time_s / p.spp for p in (base.equal_spp, base.equal_time)]
         drift = max(per_sample) / min(per_sample)
         if drift > MAX_TIME_DRIFT:
-            notes.append(f"time budget unreliable: a {baseline} pass took {drift:.1f}x as long at equal "
+            notes.append(f"{TIME_BUDGET_UNRELIABLE}: a {baseline} pass took {drift:.1f}x as long at equal "
                          f"samples ({1e3 * base.equal_spp.time_s:.1f} ms) as at equal time "
                          f"({1e3 * base.equal_time.time_s:.1f} ms), so the machine's speed changed "
                          f"during the run (other load, a cold start) and every time ratio with it; "
@@ -152,7 +185,7 @@ def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, c
     spps = {n: results[n].equal_time.spp for n in contenders}
     if min(spps.values()) <= MIN_EQUAL_TIME_SPP:
         listing = ", ".join(f"{n} {s}" for n, s in spps.items())
-        notes.append(f"equal-time spp too coarse to compare ({listing}): raise --spp")
+        notes.append(f"{EQUAL_TIME_TOO_COARSE} ({listing}): raise --spp")
     kinds = (("equal_spp", "equal samples"), ("equal_time", "equal time"))
     heavy = [n for n in shown if any(getattr(results[n], k).tail_worse_than_baseline for k, _ in kinds)]
     if heavy:
