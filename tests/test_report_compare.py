@@ -486,3 +486,29 @@ def test_the_page_never_says_best_of_all_in_a_tied_cell():
     page = _verdict_section(report)
     assert "best" not in page.replace("best Mitsuba", "").replace("best of Mitsuba", "")
     assert "no clear winner" in page
+
+
+def test_every_method_the_verdict_compares_is_defined_on_the_page():
+    from mitsuba_shsampling.report.html import _verdict_section
+    from mitsuba_shsampling.report.methods import method_by_name
+    from mitsuba_shsampling.report.schema import load_report
+    from mitsuba_shsampling.report.verdict import verdict
+
+    mse = {"direct": 1.0, "direct_misc": 0.8, "env_only": 1.5, "sh_direct": 0.7, "sh_product_only": 0.9}
+    methods = {}
+    for name, value in mse.items():
+        m = method_by_name(name)
+        methods[name] = {"label": m.label, "integrator": m.integrator, "scene_params": m.scene_params,
+                         **verdict_entry([value, 1.1 * value, 0.9 * value])}
+    report = load_report(one_cell_report(methods))
+    report.verdict = verdict(report)
+    page = _verdict_section(report)
+    defined = dict(re.findall(r"<dt>([^<]+)</dt><dd>(.*?)</dd>", page))
+    (row,) = report.verdict
+    named = {c.numerator for _, c in row.contests()} | {c.denominator for _, c in row.contests()}
+    assert named | set(mse) | {"best Mitsuba"} == set(defined)
+    assert defined["direct_misc"].startswith("Mitsuba&#x27;s own strategy: <code>direct (defaults)</code>")
+    assert "mis_compensation=true" in defined["direct_misc"]
+    assert "emitter_samples=2, bsdf_samples=0" in defined["env_only"]
+    assert defined["sh_product_only"].startswith("this package&#x27;s plugin: <code>sh_direct (strategy=product_only)")
+    assert "direct, direct_misc, env_only" in defined["best Mitsuba"]

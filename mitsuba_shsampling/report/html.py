@@ -1,7 +1,7 @@
 """The self-contained ``index.html`` of a comparison report.
 
 Written from the report as saved (:class:`.schema.Report`). The
-verdict comes first, then the caveats, then one section per scene (its map,
+verdict comes first, then what each method name means, then the caveats, then one section per scene (its map,
 references, metrics, renders at full resolution with zoomed crops, error maps
 with their colour bars, convergence, warped sample points); settings and
 machine are in a collapsed ``<details>`` at the bottom. The page fits 1400 px. Every image is embedded
@@ -20,8 +20,9 @@ import numpy as np
 
 from . import metrics, verdict
 from .images import data_uri, false_colour, png_bytes
-from .methods import DIRECT
-from .schema import CONTEST_TITLES, MaterialEntry, Report, RunResult, SceneResult, VerdictCell, serialise
+from .methods import DIRECT, MITSUBA, MULTI_BOUNCE, PROJECT, REFERENCE, role_of
+from .schema import (CONTEST_TITLES, MaterialEntry, MethodResult, Report, RunResult, SceneResult, VerdictCell,
+                     serialise)
 
 STYLE = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
@@ -39,6 +40,8 @@ figure img { image-rendering: pixelated; min-width: 256px; }
 .bar img { width: 256px; height: 12px; } .envmap img { vertical-align: middle; margin-right: 0.5em; }
 .note { color: #8a4b00; } .bad { color: #b00; font-weight: bold; } .na { color: #b00; }
 pre { background: #f6f6f6; padding: 0.5em; font-size: 0.8em; }
+dl#methods { display: grid; grid-template-columns: max-content 1fr; gap: 2px 1em; font-size: 0.9em; }
+dl#methods dt { font-family: monospace; font-weight: bold; } dl#methods dd { margin: 0; }
 """
 
 
@@ -108,6 +111,37 @@ def _cells_html(row, label: str | None, caveats: list[str]) -> str:
                    else '<td class="name">n/a</td>' for kind in CONTEST_TITLES)
 
 
+#: What each role makes of a method, as the definitions say it.
+ROLE_WORDS = {PROJECT: "this package's plugin", MITSUBA: "Mitsuba's own strategy",
+              REFERENCE: "reference row (not a contender)"}
+
+
+def _method_definitions(report: Report) -> str:
+    """A definitions list of every method the report ran (its name, role, plugin configuration
+    as a user writes it, envmap options and label), and of "best Mitsuba", so that no name
+    in the verdict or the tables is left to guess."""
+    methods: dict[str, MethodResult] = {}
+    for scene in report.scenes:
+        for run in scene.runs:
+            for name, result in run.methods.items():
+                methods.setdefault(name, result)
+    items = []
+    for name, result in methods.items():
+        config = verdict.configuration(name, result, result.family)
+        if result.family == MULTI_BOUNCE:
+            config += " at the comparison's max_depth"
+        envmap = "".join(f", the scene's envmap rebuilt with {k}={str(v).lower() if isinstance(v, bool) else v}"
+                         for k, v in (result.scene_params or {}).items())
+        role = ROLE_WORDS.get(role_of(name), "a method this version does not know")
+        items.append(f"<dt>{_e(name)}</dt><dd>{_e(role)}: <code>{_e(config)}</code>{_e(envmap)}; "
+                     f"{_e(result.label or '')}</dd>")
+    mitsuba = [n for n in methods if role_of(n) == MITSUBA]
+    if mitsuba:
+        items.append(f"<dt>best Mitsuba</dt><dd>in each contest, the best of Mitsuba's own strategies "
+                     f"that ran ({_e(', '.join(mitsuba))}), by the contest's quantity</dd>")
+    return f'<h3>Methods</h3><dl id="methods">{"".join(items)}</dl>' if items else ""
+
+
 def _verdict_section(report: Report) -> str:
     rows = report.verdict
     if not rows:
@@ -137,6 +171,7 @@ def _verdict_section(report: Report) -> str:
     if others:
         legend += ('<p>The project\'s other configurations, each against the same best Mitsuba strategy:</p>'
                    f'<table id="verdict-others">{head.replace("<th>caveats</th>", "")}{"".join(others)}</table>')
+    legend += _method_definitions(report)
     caveats = "".join(f"<li><b>{_e(r.scene)}, {_e(r.sampler)}"
                       f"{'' if r.family == DIRECT else ', multi-bounce'}</b>: {_e(c)}</li>"
                       for r in rows for c in r.caveats)
