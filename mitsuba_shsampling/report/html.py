@@ -137,8 +137,9 @@ def _method_definitions(report: Report) -> str:
                      f"{_e(result.label or '')}</dd>")
     mitsuba = [n for n in methods if role_of(n) == MITSUBA]
     if mitsuba:
-        items.append(f"<dt>best Mitsuba</dt><dd>in each contest, the best of Mitsuba's own strategies "
-                     f"that ran ({_e(', '.join(mitsuba))}), by the contest's quantity</dd>")
+        items.append(f"<dt>best Mitsuba</dt><dd>in each contest (and on each material), the best of "
+                     f"Mitsuba's own strategies that ran ({_e(', '.join(mitsuba))}) by point estimate of "
+                     f"the contest's quantity</dd>")
     return f'<h3>Methods</h3><dl id="methods">{"".join(items)}</dl>' if items else ""
 
 
