@@ -13,13 +13,14 @@ import sys
 from typing import TYPE_CHECKING
 
 from . import calibration, render
-from .command_line import DEFAULT_VARIANT, SAMPLERS, UsageError, max_depth_problem, set_variant
+from .command_line import (DEFAULT_VARIANT, SAMPLERS, UsageError, check_output_folder, max_depth_problem,
+                           set_variant)
 from .sweep import command as sweep
 from .report import DEFAULT_CACHE_DIR
-from .report.schema import CompareSettings
+from .report.schema import CONTEST_TITLES, CompareSettings
 
 if TYPE_CHECKING:
-    from .report.schema import Report
+    from .report.schema import Report, VerdictRow
 
 COMPARE_RES = CompareSettings.res
 
@@ -97,6 +98,7 @@ def _compare(args) -> int:
             raise UsageError(f"scene file not found: {path}")
     if args.envmap and not os.path.isfile(args.envmap):
         raise UsageError(f"environment map not found: {args.envmap}")
+    check_output_folder(args.out)
     if args.passes < 2:
         raise UsageError("--passes must be at least 2 (variance and bias need several passes)")
     if max_depth_problem(args.max_depth):
@@ -141,8 +143,9 @@ def _fmt(value, spec: str) -> str:
 
 
 def _print_summary(report: Report) -> None:
-    from .integrators.chooser import summary_of as strategy_summary
     """The verdict, then one line per method and comparison (n/a: see the report's notes)."""
+    from .integrators.chooser import summary_of as strategy_summary
+
     for scene in report.scenes:
         for note in scene.notes:
             print(f"note ({scene.scene}): {note}")
@@ -173,18 +176,29 @@ def _print_summary(report: Report) -> None:
                     print(f"    {row.name[:22]:<23}{row.plugin[:16]:<17}{row.pixel_share:>6.1%}  "
                           f"vs {str(row.best_mitsuba.get('equal_spp')):<12}{cells}")
     print("\nverdict:")
-    for row in report.verdict:
+    _print_verdict(report.verdict)
+
+
+def _print_verdict(rows: list[VerdictRow]) -> None:
+    """Each verdict row: every contest of its lines, then its caveats."""
+    from .report.verdict import winner_text
+
+    for row in rows:
         print(f"  {row.scene} [{row.sampler}, {row.family}]")
-        for label, line in [(row.configuration, row)] + [(o.configuration, o) for o in row.others]:
-            for title, c in line.contests():
+        for label, line in [(row.configuration, row)] + [(o.configuration, o) for o in row.others or []]:
+            for kind, title in CONTEST_TITLES.items():
+                c = getattr(line, kind)
+                if c is None:
+                    continue
                 print(f"    {title}: {label or c.numerator} / {c.denominator} {c.quantity} "
                       f"x{_fmt(c.ratio, '.3g')} [{_fmt(c.low, '.3g')}, {_fmt(c.high, '.3g')}] "
-                      f"({c.winner} best of all)")
+                      f"({winner_text(c, kind, row.caveats)})")
         for caveat in row.caveats:
             print(f"    caveat: {caveat}")
 
 
 def _bench(args) -> int:
+    check_output_folder(args.out)
     set_variant(args.variant)
     from .report.bench import run_bench
 

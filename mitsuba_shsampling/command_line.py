@@ -1,5 +1,5 @@
 """What the commands share: the default variant, the sampler names, the bad-input error, the
-checked variant switch and the check of a comparison's ``max_depth``.
+checked variant switch, the check of a comparison's ``max_depth`` and of an output folder.
 
 It sits below :mod:`.cli` and :mod:`.sweep`, which both read it, so the command line and the
 sweep grid agree on every default without importing each other.
@@ -7,12 +7,14 @@ sweep grid agree on every default without importing each other.
 
 from __future__ import annotations
 
+import os
+
 from ._backend import DEFAULT_VARIANT, unsupported_variant_reason
 
 #: Mitsuba samplers a comparison may use (``--sampler``, a grid's ``samplers``).
 SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler")
 
-__all__ = ["DEFAULT_VARIANT", "SAMPLERS", "UsageError", "max_depth_problem", "set_variant"]
+__all__ = ["DEFAULT_VARIANT", "SAMPLERS", "UsageError", "check_output_folder", "max_depth_problem", "set_variant"]
 
 
 class UsageError(Exception):
@@ -29,6 +31,18 @@ def max_depth_problem(max_depth: int) -> str | None:
         return (f"must be -1 (infinite, as Mitsuba's) or at least 2 (direct lighting), got {max_depth}: "
                 f"below 2 no light is reflected to compare")
     return None
+
+
+def check_output_folder(path: str, option: str = "--out") -> None:
+    """:class:`UsageError` unless ``path`` can be an output folder: an existing folder, or a new
+    one whose nearest existing ancestor is a folder (``os.makedirs`` would otherwise fail
+    after the run's work, with a traceback)."""
+    existing = os.path.abspath(path)
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
+        where = "is" if existing == os.path.abspath(path) else f"is inside {existing}, which is"
+        raise UsageError(f"{option} {path} {where} a file, not a folder")
 
 
 def set_variant(variant: str) -> None:

@@ -4,15 +4,17 @@ The ``mitsuba`` command-line renderer is a C++ program: it cannot load Python
 plugins, so ``<integrator type="sh_path"/>`` fails there with "Plugin not
 found". This command is its drop-in::
 
-    python -m mitsuba_shsampling render SCENE.xml --integrator sh_path --spp 256 \\
+    python -m mitsuba_shsampling render SCENE.xml --integrator sh_path:max_depth=8 --spp 256 \\
         -o out.exr -D envmap=my_map.exr -D res=512 [--variant llvm_ad_rgb]
 
 ``SCENE`` is an XML file or the name of a built-in scene (see
 :func:`mitsuba_shsampling.scenes.builtin_scenes`). ``-D name=value`` sets a
-scene's ``$name`` parameter, as for ``mitsuba``. ``--integrator`` replaces the
-scene's integrator by a default-configured plugin of that type (its
-parameters come from the XML otherwise); ``--spp`` overrides the sensor's
-sample count. The image is rendered in passes with consecutive seeds
+scene's ``$name`` parameter, as for ``mitsuba``. ``--integrator TYPE[:NAME=VALUE,...]``
+replaces the scene's integrator by a plugin of that type with those parameters
+(:func:`parse_integrator`; the others at their defaults); ``--envmap FILE``
+replaces the scene's ``envmap`` emitter by one of that map, as ``compare
+--envmap`` does (:func:`.report.scene_setup.with_environment`); ``--spp``
+overrides the sensor's sample count. The image is rendered in passes with consecutive seeds
 (``--seed``, ``--seed + 1``, ...), shown by a progress bar, and their
 spp-weighted mean is written: the same estimate as one render with all the
 samples (for independent samplers; stratified ones stratify within a pass).
@@ -52,8 +54,11 @@ def add_parser(subparsers, variant_default: str) -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", help="image file (default: SCENE's stem + .exr, here)")
     parser.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
                         help="set the scene parameter $NAME (repeatable), as mitsuba -D")
-    parser.add_argument("--integrator", metavar="TYPE",
-                        help="integrator plugin replacing the scene's, e.g. sh_path")
+    parser.add_argument("--integrator", metavar="TYPE[:NAME=VALUE,...]",
+                        help="integrator replacing the scene's, with its parameters, e.g. "
+                             "sh_path:max_depth=8,strategy=product (values: integer, else float, "
+                             "else true/false, else text)")
+    parser.add_argument("--envmap", metavar="FILE", help="lat-long map replacing the scene's envmap emitter")
     parser.add_argument("--spp", type=int, help="samples per pixel, >= 1 (default: the scene's sampler)")
     parser.add_argument("--passes", type=int,
                         help=f"render passes (default: enough for at most {PASS_SPP} spp each)")
@@ -73,6 +78,41 @@ def parse_defines(items: list[str]) -> dict[str, str]:
             raise RenderError(f"-D expects NAME=VALUE, got '{item}'")
         defines[name.strip()] = value
     return defines
+
+
+def plugin_value(text: str) -> int | float | bool | str:
+    """A plugin parameter's value from text, by the first reading that fits: an integer, a
+    float, ``true``/``false`` (any case), else the text itself. The plugins check exact types
+    (an integer parameter refuses ``8.0``), so ``8`` must stay an integer."""
+    for read in (int, float):
+        try:
+            return read(text)
+        except ValueError:
+            pass
+    if text.strip().lower() in ("true", "false"):
+        return text.strip().lower() == "true"
+    return text
+
+
+def parse_integrator(spec: str) -> dict:
+    """``TYPE[:NAME=VALUE,...]`` -> its ``mi.load_dict`` description, each value read by
+    :func:`plugin_value`: ``sh_path:max_depth=8,strategy=product`` ->
+    ``{"type": "sh_path", "max_depth": 8, "strategy": "product"}``. A value cannot hold a comma.
+    RenderError naming a malformed or repeated parameter."""
+    plugin, _, params = spec.partition(":")
+    desc = {"type": plugin.strip()}
+    if not desc["type"]:
+        raise RenderError(f"--integrator expects TYPE[:NAME=VALUE,...], got '{spec}'")
+    for item in params.split(",") if params.strip() else []:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise RenderError(f"--integrator parameters are NAME=VALUE, separated by commas, got '{item}' "
+                              f"in '{spec}'")
+        if name in desc:
+            raise RenderError(f"--integrator sets '{name}' twice in '{spec}'")
+        desc[name] = plugin_value(value.strip())
+    return desc
 
 
 def pass_plan(spp: int, passes: int | None = None) -> list[int]:
@@ -138,16 +178,22 @@ def render_file(args) -> dict:
     from tqdm import tqdm
 
     from .frozen import FrozenPass
+    from .report.scene_setup import with_environment
 
     path = resolve_scene(args.scene)
     defines = parse_defines(args.defines)
+    plugin = parse_integrator(args.integrator) if args.integrator else None
+    if args.envmap and not os.path.isfile(args.envmap):
+        raise RenderError(f"environment map not found: {args.envmap}")
     output = args.output or os.path.splitext(os.path.basename(path))[0] + ".exr"
     check_output(output)
     try:
         scene = mi.load_file(path, parallel=False, **defines)  # stable registry ids: see scenes.load_scene
-        integrator = mi.load_dict({"type": args.integrator}) if args.integrator else scene.integrator()
     except RuntimeError as err:
         raise RenderError(f"cannot load {path}: {_one_line(err)}") from None
+    if args.envmap:
+        scene = with_environment(scene, args.envmap)
+    integrator = load_integrator(plugin) if plugin else scene.integrator()
     if not scene.sensors():
         raise RenderError(f"{path} has no sensor to render from")
     if integrator is None:
@@ -176,6 +222,20 @@ def render_file(args) -> dict:
     write_image(output, image, sensor.film())
     return {"output": os.path.abspath(output), "shape": image.shape, "spp": spp,
             "passes": len(plan), "time_s": elapsed}
+
+
+def load_integrator(desc: dict):
+    """The integrator of ``desc`` (:func:`parse_integrator`); RenderError naming the plugin
+    when it is unknown, refuses its parameters or is no integrator."""
+    import mitsuba as mi
+
+    try:
+        integrator = mi.load_dict(desc)
+    except RuntimeError as err:
+        raise RenderError(f"cannot load the integrator '{desc['type']}': {_one_line(err)}") from None
+    if not isinstance(integrator, mi.Integrator):
+        raise RenderError(f"'{desc['type']}' is a {type(integrator).__name__} plugin, not an integrator")
+    return integrator
 
 
 def _one_line(err: BaseException) -> str:

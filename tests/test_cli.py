@@ -185,6 +185,16 @@ def test_bad_options_exit_with_code_2_and_a_one_line_message(args, message, caps
     assert len(err) == 1 and message in err[0]
 
 
+@pytest.mark.parametrize("command", ["compare", "bench"])
+@pytest.mark.parametrize("out", ["report.txt", "report.txt/sub"])
+def test_an_out_folder_that_is_or_lies_in_a_file_is_refused_in_one_line_with_code_2(command, out, tmp_path,
+                                                                                  capsys):
+    (tmp_path / "report.txt").write_text("not a folder")
+    assert cli.main([command, "--out", str(tmp_path / out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("a file, not a folder") and "report.txt" in err[0]
+
+
 def test_max_depth_minus_one_compares_the_multi_bounce_methods_at_infinite_depth(tmp_path):
     code = cli.main(["compare", scenes.builtin_scenes()["sphere_diffuse"], "--out", str(tmp_path),
                      "--res", "8", "--spp", "1", "--passes", "2", "--ref-spp", "8", "--max-depth", "-1",
@@ -217,6 +227,18 @@ def test_every_method_counts_two_rays_per_sample_and_sh_methods_need_their_plugi
         assert (method.plugin is not None) == (method.product_sampling or method.oracle)
 
 
+def test_a_method_named_after_a_strategy_runs_exactly_that_strategy():
+    """``sh_product_only`` reads ``strategy=product_only`` in the report, never another strategy
+    that happens to behave alike under its other parameters."""
+    from mitsuba_shsampling.integrators.strategy import STRATEGY_NAMES
+
+    named = {m.name: m.name.removeprefix("sh_") for m in METHODS if m.name.removeprefix("sh_") in STRATEGY_NAMES}
+    assert named == {"sh_product_only": "product_only"}
+    for method in METHODS:
+        if method.name in named or "strategy" in method.integrator:
+            assert method.integrator.get("strategy") == named.get(method.name), method.name
+
+
 def test_admissible_spp_matches_what_each_sampler_renders():
     assert admissible_spp("independent", 23) == 23
     assert admissible_spp("stratified", 16) == 16
@@ -233,3 +255,30 @@ def test_warped_points_figure_draws_sampler_output_and_rejects_bad_shapes():
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="shape"):
         figures.warped_points_figure(density, lambda u: u[:, :1], n_points=64)
+
+
+def verdict_of(mse_per_pass: dict[str, list[float]], time_s: float = 0.1):
+    """The verdict rows of a one-scene report whose methods have these per-pass MSEs."""
+    from mitsuba_shsampling.report.verdict import verdict
+
+    def phase(values):
+        return {"error": {"mse_per_pass": values, "mse": float(np.mean(values)), "non_finite": 0},
+                "times_s": [time_s] * len(values), "time_s": time_s, "spp": 8, "time_budget_s": time_s,
+                "budget_method": "direct", "tail_worse_than_baseline": [], "bias": {"flagged": False, "p_value": 0.5}}
+    methods = {n: {"family": "direct", "equal_spp": phase(v), "equal_time": phase(v)} for n, v in mse_per_pass.items()}
+    return verdict({"scenes": [{"scene": "s", "path": "s.xml", "references": {},
+                                "runs": [{"sampler": "independent", "methods": methods}]}]})
+
+
+def test_the_printed_verdict_says_best_only_where_the_interval_and_the_caveats_allow(capsys):
+    cli._print_verdict(verdict_of({"direct": [1.0, 1.3, 0.7, 1.0], "sh_direct": [1.3, 0.7, 1.0, 1.0]}))
+    tied = capsys.readouterr().out
+    assert "best" not in tied and tied.count("no clear winner (") == 3
+    cli._print_verdict(verdict_of({"direct": [1.0, 1.1, 0.9, 1.0], "sh_direct": [0.5, 0.55, 0.45, 0.5]},
+                                  time_s=0.005))
+    lines = capsys.readouterr().out.splitlines()
+    assert "caveat: time budget too small to be meaningful" in "\n".join(lines)
+    contests = {line.split(":")[0].strip(): line for line in lines if " / direct " in line}
+    assert "sh_direct best of all" in contests["equal samples"]
+    for title in ("equal time", "equal time, from the equal-sample passes"):
+        assert "best" not in contests[title] and "no winner: time budget too small" in contests[title]

@@ -14,7 +14,7 @@ import mitsuba_shsampling  # noqa: F401  (registers the plugins)
 mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling import cli, scenes  # noqa: E402
-from mitsuba_shsampling.render import RenderError, parse_defines, pass_plan  # noqa: E402
+from mitsuba_shsampling.render import RenderError, parse_defines, parse_integrator, pass_plan  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -51,8 +51,63 @@ def test_a_builtin_scene_name_and_an_xml_integrator_chosen_by_define_work(tmp_pa
     assert np.array(mi.Bitmap(str(out))).shape == (6, 6, 3)
 
 
+def test_integrator_parameters_are_read_with_the_types_the_plugins_check():
+    desc = parse_integrator("sh_direct:emitter_samples=2, bsdf_samples=0,defensive_share=0.25,"
+                            "hide_emitters=True,strategy=product_only,mis_compensation=false")
+    assert desc == {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0, "defensive_share": 0.25,
+                    "hide_emitters": True, "strategy": "product_only", "mis_compensation": False}
+    assert [type(desc[k]) for k in ("emitter_samples", "defensive_share", "hide_emitters", "strategy")] == [
+        int, float, bool, str]
+    assert parse_integrator("path") == {"type": "path"}
+
+
+def test_the_integrator_renders_with_the_parameters_given_on_the_command_line(tmp_path):
+    """max_depth=1 sees only the emitters: what Mitsuba's path renders with that parameter."""
+    path = scenes.builtin_scenes()["sphere_diffuse"]
+    out = tmp_path / "depth1.exr"
+    assert cli.main(["render", path, "-D", "res=8", "--integrator", "path:max_depth=1", "--spp", "2",
+                     "--seed", "3", "--no-progress", "-o", str(out)]) == 0
+    scene = mi.load_file(path, res="8")
+    expected = mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 1}), spp=2, seed=3)
+    np.testing.assert_allclose(np.array(mi.Bitmap(str(out))), np.array(expected), rtol=1e-5, atol=1e-6)
+
+
+def test_a_project_plugin_takes_integer_float_boolean_and_text_parameters(tmp_path):
+    out = tmp_path / "product_only.exr"
+    assert cli.main(["render", "sphere_diffuse", "-D", "res=4", "--spp", "1", "--no-progress", "-o", str(out),
+                     "--integrator", "sh_direct:emitter_samples=1,bsdf_samples=1,defensive_share=0.5,"
+                                     "hide_emitters=true,strategy=product_only"]) == 0
+    assert np.all(np.isfinite(np.array(mi.Bitmap(str(out)))))
+
+
+def test_envmap_replaces_the_scenes_map_and_keeps_its_integrator(tmp_path):
+    """``--envmap FILE`` renders what the scene renders with FILE as its map (here set through
+    the scene's own $envmap parameter), with the scene's integrator (direct, not Mitsuba's
+    default path)."""
+    path = scenes.builtin_scenes()["sphere_diffuse"]
+    out = tmp_path / "swapped.exr"
+    assert cli.main(["render", path, "-D", "res=8", "-D", "integrator=direct", "--envmap", scenes.STUDIO_MAP,
+                     "--spp", "2", "--seed", "5", "--no-progress", "-o", str(out)]) == 0
+    scene = mi.load_file(path, res="8", integrator="direct", envmap=scenes.STUDIO_MAP)
+    expected = np.array(mi.render(scene, spp=2, seed=5))
+    np.testing.assert_allclose(np.array(mi.Bitmap(str(out))), expected, rtol=1e-4, atol=1e-5)
+    default = np.array(mi.render(mi.load_file(path, res="8", integrator="direct"), spp=2, seed=5))
+    assert not np.allclose(expected, default, rtol=1e-2)  # another map: another image
+
+
 @pytest.mark.parametrize("argv, message", [
     (["missing.xml"], "scene file not found: missing.xml"),
+    (["sphere_diffuse", "--integrator", "no_such_plugin_xyz"],
+     "cannot load the integrator 'no_such_plugin_xyz': At dictionary node \"root\": failed to instantiate "
+     "unknown plugin of type \"no_such_plugin_xyz\""),
+    (["sphere_diffuse", "--integrator", "diffuse"], "'diffuse' is a BSDF plugin, not an integrator"),
+    (["sphere_diffuse", "--integrator", "sh_path:max_depth=-3"],
+     "OptionError: sh_path: parameter 'max_depth' must be -1 (infinite) or >= 0, got integer -3"),
+    (["sphere_diffuse", "--integrator", "path:max_depth"], "--integrator parameters are NAME=VALUE"),
+    (["sphere_diffuse", "--integrator", ":max_depth=2"], "--integrator expects TYPE[:NAME=VALUE,...]"),
+    (["sphere_diffuse", "--integrator", "path:max_depth=2,max_depth=3"], "sets 'max_depth' twice"),
+    (["sphere_diffuse", "--envmap", "no_such_map.exr"], "environment map not found: no_such_map.exr"),
+    (["area_light", "--envmap", scenes.STUDIO_MAP], "no envmap emitter to replace"),
     (["sphere_diffuse", "-D", "res"], "-D expects NAME=VALUE, got 'res'"),
     (["sphere_diffuse", "-D", "undeclared=1"], "Found unused parameters: - $undeclared=1"),
     (["sphere_diffuse", "--integrator", "sh_path", "--passes", "9", "--spp", "4"], "--passes must be in [1, spp = 4]"),

@@ -73,7 +73,7 @@ def test_verdict_table_is_visible_first_with_one_row_per_scene_and_sampler(repor
     assert "direct" in report["verdict"][0]["equal_spp"]["denominator"]
     others = browser.find_element(By.ID, "verdict-others").find_elements(By.TAG_NAME, "tr")[1:]
     assert [r.find_element(By.TAG_NAME, "b").text for r in others] == [
-        "sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false, strategy=product)"]
+        "sh_direct (strategy=product_only)"]
     # Nothing but the title and the verdict heading comes before it.
     assert table.location["y"] < browser.find_element(By.TAG_NAME, "details").location["y"]
 
@@ -121,3 +121,77 @@ def test_settings_are_collapsed_at_the_bottom(report_page, browser):
     assert not browser.find_element(By.CSS_SELECTOR, "details pre").is_displayed()
     details.find_element(By.TAG_NAME, "summary").click()
     assert "llvm_ad_rgb" in browser.find_element(By.CSS_SELECTOR, "details pre").text
+
+
+def rgb(element) -> tuple[int, int, int, float]:
+    """The computed background colour of ``element`` as (r, g, b, alpha)."""
+    values = element.value_of_css_property("background-color").split("(")[1].rstrip(")").split(",")
+    return (*(int(v) for v in values[:3]), float(values[3]) if len(values) > 3 else 1.0)
+
+
+def is_green(colour) -> bool:
+    return colour[3] > 0 and colour[1] > colour[0] + 20
+
+
+def is_red(colour) -> bool:
+    return colour[3] > 0 and colour[0] > colour[1] + 20
+
+
+def is_neutral(colour) -> bool:
+    return colour[3] == 0 or abs(colour[0] - colour[1]) <= 20
+
+
+def test_every_method_name_of_the_verdict_is_defined_on_the_page_at_1400_px(report_page, browser):
+    browser.set_window_size(1400, 1024)
+    browser.get((report_page / "index.html").as_uri())
+    definitions = browser.find_element(By.ID, "methods")
+    assert definitions.is_displayed()
+    viewport = browser.execute_script("return document.documentElement.clientWidth;")
+    assert definitions.rect["x"] + definitions.rect["width"] <= viewport
+    terms = [dt.text for dt in definitions.find_elements(By.TAG_NAME, "dt")]
+    texts = dict(zip(terms, (dd.text for dd in definitions.find_elements(By.TAG_NAME, "dd"))))
+    report = json.loads((report_page / "report.json").read_text())
+    named = {c[k] for row in report["verdict"] for c in (row["equal_spp"], row["equal_time"])
+             for k in ("numerator", "denominator", "winner")}
+    ran = set(report["scenes"][0]["runs"][0]["methods"])
+    assert named <= ran and set(terms) == ran | {"best Mitsuba"}
+    assert "direct (defaults)" in texts["direct_misc"] and "mis_compensation=true" in texts["direct_misc"]
+    assert "emitter_samples=2, bsdf_samples=0" in texts["env_only"]
+    assert all(text.strip() for text in texts.values())
+    # With the verdict, above "How to read this page" and the scenes.
+    assert definitions.location["y"] < browser.find_elements(By.TAG_NAME, "h2")[1].location["y"]
+
+
+def test_wins_are_green_losses_red_and_ties_neutral_in_the_verdict_and_per_material(report_page, browser):
+    """The saved report with known intervals put in: a clear loss (0.833x [0.725, 0.953] the
+    efficiency) is as visible as a win, and a per-material 1.00 inside its interval is not red."""
+    import dataclasses
+
+    from mitsuba_shsampling.report.html import write_html
+    from mitsuba_shsampling.report.schema import load_report
+
+    report = load_report(report_page / "report.json")
+    row = report.verdict[0]
+    row.equal_spp = dataclasses.replace(row.equal_spp, ratio=0.8, low=0.7, high=0.9)
+    row.equal_time = dataclasses.replace(row.equal_time, ratio=0.833, low=0.725, high=0.953)
+    row.time_normalised = dataclasses.replace(row.time_normalised, ratio=1.0, low=0.95, high=1.05)
+    rows = report.scenes[0].runs[0].materials["direct"]
+    for material, (ratio, low, high) in zip(rows, [(1.0, 0.98, 1.02), (0.5, 0.4, 0.6), (2.0, 1.5, 2.5)]):
+        material.error_ratio["sh_direct"] = {"equal_spp": ratio, "equal_time": ratio}
+        material.error_ratio_interval["sh_direct"] = {"equal_spp": [low, high], "equal_time": [low, high]}
+    write_html(str(report_page / "colours.html"), report)
+
+    browser.set_window_size(1400, 1024)
+    browser.get((report_page / "colours.html").as_uri())
+    cells = browser.find_element(By.ID, "verdict").find_elements(By.TAG_NAME, "tr")[1].find_elements(By.TAG_NAME, "td")
+    win, loss, tie = cells[3:6]
+    assert is_green(rgb(win)) and "wins" in win.text
+    assert is_red(rgb(loss)) and "loses" in loss.text and "0.833x" in loss.text
+    assert is_neutral(rgb(tie)) and "tie" in tie.text and "best" not in tie.text
+    tables = browser.find_elements(By.XPATH, "//h4[starts-with(., 'Per material')]/following-sibling::div[1]//table")
+    header = tables[0].find_element(By.TAG_NAME, "tr").text
+    assert "sh_direct: error ratio to the best Mitsuba there, equal samples" in header
+    assert "sh_direct: error ratio, equal time" in header
+    for title, check, text in (("tie:", is_neutral, "1"), ("wins:", is_green, "0.5"), ("loses:", is_red, "2")):
+        shown = [c for c in tables[0].find_elements(By.CSS_SELECTOR, f"td[title^='{title}']") if c.text == text]
+        assert len(shown) == 2 and all(check(rgb(c)) for c in shown), title

@@ -137,7 +137,7 @@ def test_verdict_names_direct_the_clear_winner_over_bsdf_sampling_of_a_small_lig
     page = (tmp_path / "out" / "index.html").read_text()
     verdict_table = page[page.index('<table id="verdict">'):]
     verdict_table = verdict_table[:verdict_table.index("</table>")]
-    assert verdict_table.count('<td class="win"><b>direct</b>') == 3  # every kind of contest
+    assert verdict_table.count('<td class="name win"><b>direct</b> wins') == 3  # every kind of contest
     assert page.index('id="verdict"') < page.index("<details>")  # verdict on top, settings at the bottom
 
 
@@ -350,7 +350,7 @@ def test_the_verdicts_first_line_is_the_plugin_at_its_defaults_against_the_best_
     assert row.configuration == "sh_direct (defaults)"
     (other,) = row.others
     assert other.method == "sh_product_only" and other.equal_spp.denominator == "direct_misc"
-    assert other.configuration == "sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false, strategy=product)"
+    assert other.configuration == "sh_direct (strategy=product_only)"
     assert other.equal_spp.ratio == pytest.approx(0.3 / 0.8)
 
 
@@ -402,3 +402,113 @@ def test_heavy_tails_are_flagged_only_for_the_methods_the_verdict_shows():
     methods["direct_misc"]["equal_time"]["tail_worse_than_baseline"] = ["brightest pixel 9 > 3 x direct's 2"]
     (row,) = verdict(report)
     assert [c for c in row.caveats if "heavy tails" in c][0].startswith("heavy tails: direct_misc is worse")
+
+
+def test_the_zoomed_crop_shows_noise_the_page_displays_not_a_highlight_it_clips():
+    """A highlight (radiance 50, noise 20) is white in every method's PNG; a grey patch with
+    visible noise is where the methods differ on the page, so the crop shows it."""
+    import types
+
+    from mitsuba_shsampling.report.compare import crop
+
+    rng = np.random.default_rng(1)
+    reference = np.full((48, 48, 3), 0.2)
+    reference[:8, :8] = 50.0
+    passes = np.repeat(reference[None], 8, axis=0)
+    passes[:, :8, :8] += rng.normal(0.0, 20.0, (8, 8, 8, 3))
+    passes[:, 32:40, 24:32] += rng.normal(0.0, 0.1, (8, 8, 8, 3))
+    method = types.SimpleNamespace(name="direct", family="direct")
+    x, y, size = crop([method], {"direct": types.SimpleNamespace(images=passes)},
+                      {"direct": types.SimpleNamespace(image=reference)}, exposure_value=1.0)
+    assert (x, y, size) == (24, 32, 8)
+
+
+@pytest.mark.parametrize("quantity, ratio, low, high, shown", [
+    ("efficiency", 0.833, 0.725, 0.953, "loses"),  # less efficient, and the interval says so
+    ("efficiency", 1.25, 1.1, 1.4, "wins"),
+    ("efficiency", 0.98, 0.9, 1.05, "tie"),
+    ("MSE", 0.8, 0.7, 0.9, "wins"),
+    ("MSE", 1.2, 1.1, 1.3, "loses"),
+    ("MSE", 1.0, 0.95, 1.05, "tie"),
+])
+def test_a_verdict_cell_is_green_for_a_win_red_for_a_loss_and_neutral_for_a_tie(quantity, ratio, low, high, shown):
+    from mitsuba_shsampling.report.html import _cell_html
+    from mitsuba_shsampling.report.schema import VerdictCell
+
+    cell = VerdictCell(quantity=quantity, winner="direct_misc", winner_is_project=False, numerator="sh_direct",
+                       denominator="direct_misc", ratio=ratio, low=low, high=high)
+    (classes, word), = re.findall(r'<td class="([^"]*)"><b>sh_direct \(defaults\)</b> (\w+)<br>',
+                                  _cell_html(cell, "sh_direct (defaults)", "equal_spp", []))
+    colour = {"wins": "win", "loses": "loss", "tie": None}[shown]
+    assert word == shown
+    assert ({"win", "loss"} & set(classes.split())) == ({colour} if colour else set())
+
+
+def test_best_of_all_is_said_only_where_the_winners_interval_over_the_runner_up_excludes_1():
+    from mitsuba_shsampling.report.verdict import verdict, winner_text
+
+    clear = {"direct": verdict_entry([1.0, 1.1, 0.9, 1.0]), "sh_direct": verdict_entry([0.5, 0.55, 0.45, 0.5])}
+    (row,) = verdict(one_cell_report(clear))
+    assert row.equal_spp.runner_up == "direct" and row.equal_spp.winner_high < 1
+    assert winner_text(row.equal_spp, "equal_spp", row.caveats).startswith("sh_direct best of all")
+    # The same MSE, pass for pass in a different order: the interval contains 1.
+    tie = {"direct": verdict_entry([1.0, 1.3, 0.7, 1.0]), "sh_direct": verdict_entry([1.3, 0.7, 1.0, 1.0])}
+    (row,) = verdict(one_cell_report(tie))
+    assert any("no clear winner" in c for c in row.caveats)
+    text = winner_text(row.equal_spp, "equal_spp", row.caveats)
+    assert "best" not in text and text.startswith("no clear winner")
+
+
+def test_no_winner_is_named_at_equal_time_beside_a_caveat_that_voids_the_times():
+    from mitsuba_shsampling.report.verdict import verdict, winner_text
+
+    methods = {"direct": verdict_entry([1.0, 1.1, 0.9, 1.0], time_s=0.005),
+               "sh_direct": verdict_entry([0.5, 0.55, 0.45, 0.5], time_s=0.005)}
+    for entry in methods.values():
+        for kind in ("equal_spp", "equal_time"):
+            entry[kind]["time_budget_s"] = 0.005
+    (row,) = verdict(one_cell_report(methods))
+    assert any(c.startswith("time budget too small to be meaningful") for c in row.caveats)
+    for kind in ("equal_time", "time_normalised"):
+        text = winner_text(getattr(row, kind), kind, row.caveats)
+        assert "best" not in text and text.startswith("no winner: time budget too small")
+    assert "best of all" in winner_text(row.equal_spp, "equal_spp", row.caveats)  # samples need no clock
+
+
+def test_the_page_never_says_best_of_all_in_a_tied_cell():
+    from mitsuba_shsampling.report.html import _verdict_section
+    from mitsuba_shsampling.report.schema import load_report
+    from mitsuba_shsampling.report.verdict import verdict
+
+    tie = {"direct": verdict_entry([1.0, 1.3, 0.7, 1.0]), "sh_direct": verdict_entry([1.3, 0.7, 1.0, 1.0])}
+    report = load_report(one_cell_report(tie))
+    report.verdict = verdict(report)
+    page = _verdict_section(report)
+    assert "best" not in page.replace("best Mitsuba", "").replace("best of Mitsuba", "")
+    assert "no clear winner" in page
+
+
+def test_every_method_the_verdict_compares_is_defined_on_the_page():
+    from mitsuba_shsampling.report.html import _verdict_section
+    from mitsuba_shsampling.report.methods import method_by_name
+    from mitsuba_shsampling.report.schema import load_report
+    from mitsuba_shsampling.report.verdict import verdict
+
+    mse = {"direct": 1.0, "direct_misc": 0.8, "env_only": 1.5, "sh_direct": 0.7, "sh_product_only": 0.9}
+    methods = {}
+    for name, value in mse.items():
+        m = method_by_name(name)
+        methods[name] = {"label": m.label, "integrator": m.integrator, "scene_params": m.scene_params,
+                         **verdict_entry([value, 1.1 * value, 0.9 * value])}
+    report = load_report(one_cell_report(methods))
+    report.verdict = verdict(report)
+    page = _verdict_section(report)
+    defined = dict(re.findall(r"<dt>([^<]+)</dt><dd>(.*?)</dd>", page))
+    (row,) = report.verdict
+    named = {c.numerator for _, c in row.contests()} | {c.denominator for _, c in row.contests()}
+    assert named | set(mse) | {"best Mitsuba"} == set(defined)
+    assert defined["direct_misc"].startswith("Mitsuba&#x27;s own strategy: <code>direct (defaults)</code>")
+    assert "mis_compensation=true" in defined["direct_misc"]
+    assert "emitter_samples=2, bsdf_samples=0" in defined["env_only"]
+    assert defined["sh_product_only"].startswith("this package&#x27;s plugin: <code>sh_direct (strategy=product_only)")
+    assert "direct, direct_misc, env_only" in defined["best Mitsuba"]

@@ -1,5 +1,7 @@
 """The report's per-material breakdown: which material each pixel shows, and where a method wins or loses."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ import mitsuba as mi
 mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.report import materials  # noqa: E402
+from mitsuba_shsampling.report.schema import MaterialEntry  # noqa: E402
 
 
 def two_sphere_scene() -> mi.Scene:
@@ -69,6 +72,50 @@ def test_error_ratio_compares_with_the_best_mitsuba_strategy_on_each_material():
     assert by_name["glossy"].error_share["sh_direct"] == pytest.approx(0.2, rel=0.1)
     for name in passes:
         assert sum(r.error_share[name] for r in rows) == pytest.approx(1.0)
+
+
+def test_each_error_ratio_has_a_paired_interval_that_tells_a_win_a_loss_and_a_tie_apart():
+    rng = np.random.default_rng(3)
+    ids = np.repeat(np.arange(3), 4)[None].repeat(2, axis=0)  # three materials, 8 pixels each
+    sd = {"direct": np.ones((2, 12)), "sh_direct": np.sqrt(np.array([0.5, 2.0, 1.0]))[ids]}
+    passes = {n: synthetic_passes(rng, s, passes=64) for n, s in sd.items()}
+    passes["sh_direct"][:, :, 8:] = passes["direct"][:, :, 8:]  # the same samples: exactly 1
+    rows = materials.breakdown(ids, [("win", "A"), ("loss", "B"), ("tie", "C")], passes, passes,
+                               np.ones((2, 12, 3)), ["sh_direct"], ["direct"])
+    interval = {r.name: r.error_ratio_interval["sh_direct"]["equal_spp"] for r in rows}
+    assert interval["win"][1] < 1 < interval["loss"][0]
+    assert interval["tie"] == [pytest.approx(1.0), pytest.approx(1.0)]
+    for row in rows:
+        low, high = row.error_ratio_interval["sh_direct"]["equal_time"]
+        assert low <= row.error_ratio["sh_direct"]["equal_time"] <= high
+
+
+def material_row(ratio: float, low: float, high: float) -> MaterialEntry:
+    return MaterialEntry(name="m", plugin="Diffuse", pixel_share=1.0,
+                         error_ratio={"sh_direct": {"equal_spp": ratio, "equal_time": ratio}},
+                         best_mitsuba={"equal_spp": "direct", "equal_time": "direct"},
+                         error_share={"sh_direct": 1.0, "direct": 1.0},
+                         error_ratio_interval={"sh_direct": {"equal_spp": [low, high], "equal_time": [low, high]}})
+
+
+@pytest.mark.parametrize("ratio, low, high, shown", [
+    (0.5, 0.4, 0.6, "win"), (2.0, 1.5, 2.5, "loss"), (1.0, 0.97, 1.03, "tie"), (1.004, 0.99, 1.02, "tie")])
+def test_the_page_colours_a_material_ratio_by_its_interval_and_a_tie_is_never_red(ratio, low, high, shown):
+    from mitsuba_shsampling.report.html import _materials_table
+
+    table = _materials_table([material_row(ratio, low, high)])
+    cells = re.findall(r'<td class="(\w*)" title="[^"]*">([^<]*)</td>', table)
+    assert [c for c, _ in cells] == [shown, shown]
+    assert "sh_direct: error ratio to the best Mitsuba there, equal samples" in table
+    assert "sh_direct: error ratio, equal time" in table
+
+
+def test_a_report_from_before_the_intervals_shows_its_material_ratios_uncoloured():
+    from mitsuba_shsampling.report.html import _materials_table
+
+    row = material_row(3.0, 2.0, 4.0)
+    row.error_ratio_interval = None
+    assert 'class="win"' not in _materials_table([row]) and 'class="loss"' not in _materials_table([row])
 
 
 def test_a_strategy_that_leaves_a_material_dark_is_not_its_best():

@@ -41,13 +41,36 @@ class FakeRenderer:
 
 def test_pass_k_of_every_method_runs_before_pass_k_plus_1_of_any():
     log = []
-    jobs = {name: (FakeRenderer(name, log), 4) for name in ("direct", "sh_direct", "direct_misc")}
+    names = ("direct", "sh_direct", "direct_misc")
+    jobs = {name: (FakeRenderer(name, log), 4) for name in names}
     passes, failed = interleaved_passes(jobs, count=3, seed0=10)
     assert not failed
-    assert log == [(name, 10 + k) for k in range(3) for name in ("direct", "sh_direct", "direct_misc")]
+    assert [seed for _, seed in log] == [10] * 3 + [11] * 3 + [12] * 3
+    for k in range(3):
+        assert sorted(name for name, _ in log[3 * k:3 * k + 3]) == sorted(names)
     for name, result in passes.items():
         assert result.seeds == [10, 11, 12] and result.images.shape == (3, 2, 2, 3)
         assert result.images[:, 0, 0, 0].tolist() == [10.0, 11.0, 12.0]
+
+
+def test_the_order_of_the_methods_rotates_from_pass_to_pass():
+    """No method always renders first (or always after the same one): position effects of the
+    round robin fall on every method alike."""
+    log = []
+    jobs = {name: (FakeRenderer(name, log), 4) for name in ("direct", "sh_direct", "direct_misc")}
+    interleaved_passes(jobs, count=4, seed0=0)
+    orders = [[name for name, seed in log if seed == k] for k in range(4)]
+    assert orders == [["direct", "sh_direct", "direct_misc"], ["sh_direct", "direct_misc", "direct"],
+                      ["direct_misc", "direct", "sh_direct"], ["direct", "sh_direct", "direct_misc"]]
+
+
+def test_the_rotation_skips_a_method_that_failed():
+    log = []
+    jobs = {"direct": (FakeRenderer("direct", log), 4), "broken": (FakeRenderer("broken", log, fail_at=1), 4),
+            "sh_direct": (FakeRenderer("sh_direct", log), 4)}
+    interleaved_passes(jobs, count=3, seed0=0)
+    orders = [[name for name, seed in log if seed == k] for k in range(3)]
+    assert orders == [["direct", "broken", "sh_direct"], ["sh_direct", "direct"], ["sh_direct", "direct"]]
 
 
 def test_a_method_that_fails_is_reported_and_the_others_still_get_every_pass():

@@ -142,12 +142,21 @@ def compare_with_baselines(results: dict[str, MethodResult]) -> None:
                 e.tail_worse_than_baseline = metrics.tail_worse(e.tail, b.tail, base_name)
 
 
-def crop(methods: list[Method], equal_spp: dict[str, PassSet]) -> list[int] | None:
+def crop(methods: list[Method], equal_spp: dict[str, PassSet], refs: dict[str, Reference],
+         exposure_value: float) -> list[int] | None:
     """[x, y, size] of the zoomed crop shown for every method: the window of a sixth of the
-    image (at least 8 px) where the methods' summed per-pixel variance is largest."""
+    image (at least 8 px) where the methods' summed per-pixel variance *as displayed* is largest.
+
+    The variance is that of the tone-mapped passes (:func:`.images.display`, what the page's
+    PNGs show), and pixels the tone mapping clips in the method's reference count for nothing:
+    the linear variance grows with the radiance squared, so it picked a highlight that is
+    solid white in every method's crop."""
     if not methods:
         return None
-    variance = sum(metrics.pixel_variance(equal_spp[m.name].images) for m in methods)
+    variance = 0.0
+    for m in methods:
+        shown = images.display(equal_spp[m.name].images, exposure_value).var(axis=0).mean(axis=-1)
+        variance = variance + np.where(images.clipped_pixels(refs[m.family].image, exposure_value), 0.0, shown)
     size = max(8, min(variance.shape) // 6)
     return [*images.noisiest_window(variance, size), min(size, *variance.shape)]
 
@@ -518,7 +527,7 @@ class SceneComparison:
         # What actually rendered, read back from the sensor the passes used.
         sensor = next(iter(renderers.values())).sensor if renderers else None
         run = RunResult(sampler=sampler, methods=results, maps=ErrorMaps(files={}, scale={}),
-                        crop=crop(methods, equal_spp), convergence_plot=None,
+                        crop=crop(methods, equal_spp, refs, exposure_value), convergence_plot=None,
                         materials=material_breakdown(renderers, methods, equal_spp, timed, refs),
                         sampler_plugin=sensor.sampler().class_name() if sensor else None,
                         film_size=[int(v) for v in sensor.film().size()] if sensor else None)

@@ -1,7 +1,7 @@
 """The self-contained ``index.html`` of a comparison report.
 
 Written from the report as saved (:class:`.schema.Report`). The
-verdict comes first, then the caveats, then one section per scene (its map,
+verdict comes first, then what each method name means, then the caveats, then one section per scene (its map,
 references, metrics, renders at full resolution with zoomed crops, error maps
 with their colour bars, convergence, warped sample points); settings and
 machine are in a collapsed ``<details>`` at the bottom. The page fits 1400 px. Every image is embedded
@@ -20,8 +20,9 @@ import numpy as np
 
 from . import metrics, verdict
 from .images import data_uri, false_colour, png_bytes
-from .methods import DIRECT
-from .schema import CONTEST_TITLES, MaterialEntry, Report, RunResult, SceneResult, VerdictCell, serialise
+from .methods import DIRECT, MITSUBA, MULTI_BOUNCE, PROJECT, REFERENCE, role_of
+from .schema import (CONTEST_TITLES, MaterialEntry, MethodResult, Report, RunResult, SceneResult, VerdictCell,
+                     serialise)
 
 STYLE = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
@@ -30,7 +31,7 @@ th, td { border: 1px solid #bbb; padding: 3px 6px; text-align: right; }
 .scroll { max-width: 100%; overflow-x: auto; } .scroll td { white-space: nowrap; }
 th { background: #eee; } td.name { text-align: left; }
 table#verdict { font-size: 1em; } table[id^=verdict] td, table[id^=verdict] th { text-align: left; }
-td.win { background: #d7f5d0; font-weight: bold; }
+td.win { background: #d7f5d0; font-weight: bold; } td.loss { background: #f8d3cf; font-weight: bold; }
 .row { display: flex; flex-wrap: wrap; gap: 8px; }
 figure { margin: 0; text-align: center; font-size: 0.75em; }
 figure img { image-rendering: pixelated; min-width: 256px; }
@@ -39,6 +40,8 @@ figure img { image-rendering: pixelated; min-width: 256px; }
 .bar img { width: 256px; height: 12px; } .envmap img { vertical-align: middle; margin-right: 0.5em; }
 .note { color: #8a4b00; } .bad { color: #b00; font-weight: bold; } .na { color: #b00; }
 pre { background: #f6f6f6; padding: 0.5em; font-size: 0.8em; }
+dl#methods { display: grid; grid-template-columns: max-content 1fr; gap: 2px 1em; font-size: 0.9em; }
+dl#methods dt { font-family: monospace; font-weight: bold; } dl#methods dd { margin: 0; }
 """
 
 
@@ -75,19 +78,69 @@ class _Page:
                 f'<figcaption>{cap}</figcaption></figure>')
 
 
-def _cell_html(cell: VerdictCell, label: str | None) -> str:
-    """A verdict cell: the numerator (named ``label``) against the denominator, highlighted when
-    the interval says the numerator is the better of the two; the overall winner below."""
-    best = "lowest MSE" if cell.quantity == "MSE" else "highest efficiency"
-    return (f'<td class="{"win" if cell.numerator_better else "name"}"><b>{_e(label or cell.numerator)}</b><br>'
+def outcome(low: float | None, high: float | None, lower_is_better: bool) -> str:
+    """What the interval [low, high] of a ratio says of its numerator: ``win`` or ``loss`` when
+    it lies on one side of 1, ``tie`` when it contains 1, ``unknown`` without a finite interval.
+    It is also the cell's class: ``win`` green, ``loss`` red, the others neutral."""
+    if low is None or high is None or not (math.isfinite(low) and math.isfinite(high)):
+        return "unknown"
+    if low <= 1.0 <= high:
+        return "tie"
+    return "win" if (high < 1.0) == lower_is_better else "loss"
+
+
+#: How a verdict cell names the numerator's outcome.
+OUTCOME_WORDS = {"win": "wins", "loss": "loses", "tie": "tie", "unknown": "n/a"}
+
+
+def _cell_html(cell: VerdictCell, label: str | None, kind: str, caveats: list[str]) -> str:
+    """A verdict cell of contest ``kind``: the numerator (named ``label``) against the
+    denominator, green when the interval says the numerator is the better of the two, red when
+    the worse, neutral on a tie; the overall winner below, named only as far as the interval
+    and the row's ``caveats`` allow (:func:`.verdict.winner_text`)."""
+    result = outcome(cell.low, cell.high, cell.quantity == "MSE")
+    return (f'<td class="name {result}"><b>{_e(label or cell.numerator)}</b> {OUTCOME_WORDS[result]}<br>'
             f'<small>{_num(cell.ratio, 3)}x the {cell.quantity} of {_e(cell.denominator)} '
-            f'[{_num(cell.low, 3)}, {_num(cell.high, 3)}]; {best} of all: {_e(cell.winner)}</small></td>')
+            f'[{_num(cell.low, 3)}, {_num(cell.high, 3)}]; {_e(verdict.winner_text(cell, kind, caveats))}'
+            f'</small></td>')
 
 
-def _cells_html(row, label: str | None) -> str:
+def _cells_html(row, label: str | None, caveats: list[str]) -> str:
     """A verdict row's three cells (a report from before the third shows n/a there)."""
-    cells = [getattr(row, kind) for kind in CONTEST_TITLES]
-    return "".join(_cell_html(c, label) if c is not None else '<td class="name">n/a</td>' for c in cells)
+    return "".join(_cell_html(getattr(row, kind), label, kind, caveats) if getattr(row, kind) is not None
+                   else '<td class="name">n/a</td>' for kind in CONTEST_TITLES)
+
+
+#: What each role makes of a method, as the definitions say it.
+ROLE_WORDS = {PROJECT: "this package's plugin", MITSUBA: "Mitsuba's own strategy",
+              REFERENCE: "reference row (not a contender)"}
+
+
+def _method_definitions(report: Report) -> str:
+    """A definitions list of every method the report ran (its name, role, plugin configuration
+    as a user writes it, envmap options and label), and of "best Mitsuba", so that no name
+    in the verdict or the tables is left to guess."""
+    methods: dict[str, MethodResult] = {}
+    for scene in report.scenes:
+        for run in scene.runs:
+            for name, result in run.methods.items():
+                methods.setdefault(name, result)
+    items = []
+    for name, result in methods.items():
+        config = verdict.configuration(name, result, result.family)
+        if result.family == MULTI_BOUNCE:
+            config += " at the comparison's max_depth"
+        envmap = "".join(f", the scene's envmap rebuilt with {k}={str(v).lower() if isinstance(v, bool) else v}"
+                         for k, v in (result.scene_params or {}).items())
+        role = ROLE_WORDS.get(role_of(name), "a method this version does not know")
+        items.append(f"<dt>{_e(name)}</dt><dd>{_e(role)}: <code>{_e(config)}</code>{_e(envmap)}; "
+                     f"{_e(result.label or '')}</dd>")
+    mitsuba = [n for n in methods if role_of(n) == MITSUBA]
+    if mitsuba:
+        items.append(f"<dt>best Mitsuba</dt><dd>in each contest (and on each material), the best of "
+                     f"Mitsuba's own strategies that ran ({_e(', '.join(mitsuba))}) by point estimate of "
+                     f"the contest's quantity</dd>")
+    return f'<h3>Methods</h3><dl id="methods">{"".join(items)}</dl>' if items else ""
 
 
 def _verdict_section(report: Report) -> str:
@@ -101,23 +154,25 @@ def _verdict_section(report: Report) -> str:
     for r in rows:
         lighting = "direct" if r.family == DIRECT else "multi-bounce"
         where = f'<td>{_e(r.scene)}</td><td>{_e(r.sampler)}</td><td>{lighting}</td>'
-        cells = _cells_html(r, r.configuration)
+        cells = _cells_html(r, r.configuration, r.caveats)
         body.append(f'<tr>{where}{cells}<td>{len(r.caveats)}</td></tr>')
         for other in r.others or []:
-            cells = _cells_html(other, other.configuration)
+            cells = _cells_html(other, other.configuration, r.caveats)
             others.append(f"<tr>{where}{cells}</tr>")
     table = f'<table id="verdict">{head}{"".join(body)}</table>'
     legend = (f"<p>First: the project's plugin at its defaults (what switching the integrator gives) "
               f"against the best of Mitsuba's own strategies in the same run (or, with no project "
-              f"method, the winner against the runner-up), highlighted when its interval says it is "
-              f"the better of the two: MSE ratio at equal samples (below 1: the first is better), efficiency ratio "
+              f"method, the winner against the runner-up), green where its interval says it is "
+              f"the better of the two, red where the worse, uncoloured where the interval contains 1 "
+              f"(a tie): MSE ratio at equal samples (below 1: the first is better), efficiency ratio "
               f"1/(MSE x time) at equal time (above 1: the first is better), from the renders at equal "
               f"time and from the equal-sample passes (the same quantity: at one seed and spp the noise "
               f"both methods draw alike cancels there); in brackets the "
-              f"{verdict.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
+              f"{metrics.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
     if others:
         legend += ('<p>The project\'s other configurations, each against the same best Mitsuba strategy:</p>'
                    f'<table id="verdict-others">{head.replace("<th>caveats</th>", "")}{"".join(others)}</table>')
+    legend += _method_definitions(report)
     caveats = "".join(f"<li><b>{_e(r.scene)}, {_e(r.sampler)}"
                       f"{'' if r.family == DIRECT else ', multi-bounce'}</b>: {_e(c)}</li>"
                       for r in rows for c in r.caveats)
@@ -224,7 +279,8 @@ def _render_figures(page: _Page, run: RunResult, kind: str) -> str:
                          f'margin-left:-{x * crop_zoom}px;margin-top:-{y * crop_zoom}px"></div>'
                          f'<figcaption>{_e(name)}</figcaption></figure>')
     where = (f"<p>Zoomed crop, pixels [{x}, {x + size}) x [{y}, {y + size}) (where the methods' "
-             f"variance is largest), {crop_zoom}x:</p>" if size else "")
+             f"variance as displayed is largest, highlights the display clips left out), "
+             f"{crop_zoom}x:</p>" if size else "")
     return f"<div class='row'>{''.join(full)}</div>{where}<div class='row'>{''.join(crops)}</div>"
 
 
@@ -234,8 +290,8 @@ def _materials_table(rows: list[MaterialEntry]) -> str:
         return ""
     project = list(rows[0].error_ratio)
     chose = [n for n in project if any(n in row.strategy for row in rows)]
-    head = "".join(f"<th>{_e(n)}: error / best Mitsuba, equal samples</th><th>{_e(n)}: equal time</th>"
-                   f"<th>{_e(n)}: share of its error</th>"
+    head = "".join(f"<th>{_e(n)}: error ratio to the best Mitsuba there, equal samples</th>"
+                   f"<th>{_e(n)}: error ratio, equal time</th><th>{_e(n)}: share of its error</th>"
                    + (f"<th>{_e(n)}: strategy (predicted variance gain)</th>" if n in chose else "")
                    for n in project)
     out = [f"<table><tr><th>material</th><th>plugin</th><th>pixels</th><th>best Mitsuba strategy there "
@@ -246,8 +302,11 @@ def _materials_table(rows: list[MaterialEntry]) -> str:
         for n in project:
             for kind in ("equal_spp", "equal_time"):
                 ratio = row.error_ratio[n].get(kind)
-                style = ' class="bad"' if ratio is not None and ratio > 1 else ""
-                cells.append(f"<td{style}>{_num(ratio, 3)}</td>")
+                low, high = ((row.error_ratio_interval or {}).get(n) or {}).get(kind) or (None, None)
+                result = outcome(low, high, lower_is_better=True)
+                interval = (f"{metrics.INTERVAL:.0%} interval [{low:.3g}, {high:.3g}]" if result != "unknown"
+                            else "no interval")
+                cells.append(f'<td class="{result}" title="{OUTCOME_WORDS[result]}: {interval}">{_num(ratio, 3)}</td>')
             cells.append(f"<td>{_num(row.error_share.get(n), 2)}</td>")
             if n in chose:
                 picked = row.strategy.get(n)
@@ -281,10 +340,14 @@ def _scene_section(page: _Page, scene: SceneResult) -> None:
         page.add(_metrics_table(run))
         for family, rows in (run.materials or {}).items():
             page.add(f"<h4>Per material ({_e(family)} family): where each method wins and loses</h4>"
-                     "<p>Each pixel counts for the material its centre sees. An error ratio below 1 "
-                     "beats every Mitsuba strategy on that material's pixels (the best one there is "
-                     "named); the error share is the part of the method's squared error, summed over "
-                     "the image, that falls on the material.</p>")
+                     "<p>Each pixel counts for the material its centre sees. The error ratio is the "
+                     "method's squared error on that material's pixels over the best Mitsuba "
+                     "strategy's there (named), coloured by its "
+                     f"{metrics.INTERVAL:.0%} paired bootstrap interval over passes (in the cell's "
+                     "tooltip): green where the "
+                     "interval lies below 1 (it beats every Mitsuba strategy there), red where above, "
+                     "uncoloured where it contains 1. The error share is the part of the method's "
+                     "squared error, summed over the image, that falls on the material.</p>")
             page.add(f'<div class="scroll">{_materials_table(rows)}</div>')
         for kind, title in (("equal_spp", "equal samples"), ("equal_time", "equal time")):
             page.add(f"<h4>Renders at {title} (first pass)</h4>{_render_figures(page, run, kind)}")

@@ -12,11 +12,21 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
-def tonemap(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
-    """Linear RGB (H, W, 3) radiance -> sRGB-encoded uint8 (H, W, 3), clipped at 1."""
+def display(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """Linear RGB (..., 3) radiance -> sRGB-encoded values in [0, 1] (..., 3), as a report's PNGs
+    show it: exposed, non-finite values as black (NaN) or white (+inf), clipped at 1."""
     x = np.clip(np.nan_to_num(image[..., :3] * exposure, nan=0.0, posinf=1.0), 0.0, 1.0)
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return np.round(srgb * 255).astype(np.uint8)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def clipped_pixels(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """(...) whether :func:`display` clips a channel of each pixel of ``image`` (..., C) at white."""
+    return np.any(np.nan_to_num(image[..., :3] * exposure, nan=0.0, posinf=1.0) >= 1.0, axis=-1)
+
+
+def tonemap(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """Linear RGB (H, W, 3) radiance -> sRGB-encoded uint8 (H, W, 3) (:func:`display`)."""
+    return np.round(display(image, exposure) * 255).astype(np.uint8)
 
 
 def false_colour(values: np.ndarray, vmin: float, vmax: float, cmap: str = "inferno") -> np.ndarray:

@@ -13,7 +13,9 @@ comparison:
 - the expected squared error (against the reference, averaged over the passes)
   summed over the material's pixels, as a ratio to the best Mitsuba strategy *on
   that material* (so a ratio below 1 means the method beats every Mitsuba strategy
-  there), at equal samples and at equal time. Squared error rather than variance,
+  there), at equal samples and at equal time, with the paired bootstrap interval over
+  passes that the verdict uses (:func:`.metrics.paired_bootstrap`; the best Mitsuba
+  strategy is the one of all passes). Squared error rather than variance,
   because a strategy can be noiseless on a material by leaving it dark: envmap-only
   sampling gives a smooth glass no light at all;
 - the share of the method's image error (the same squared error, summed over
@@ -32,6 +34,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..scene_materials import registry_id, scene_materials
+from .metrics import paired_bootstrap
 from .schema import MaterialEntry
 
 BACKGROUND = "background"
@@ -77,10 +80,11 @@ def breakdown(ids: np.ndarray, labels: list[tuple[str, str]], equal_spp: dict[st
     :param project, mitsuba: names of the project's and of Mitsuba's methods among them.
     """
     def squared_error(passes: np.ndarray) -> np.ndarray:
-        """(H, W) squared error against the reference, averaged over passes and channels."""
+        """(K, H, W) squared error of each pass against the reference, averaged over channels
+        (a non-finite value counts for nothing)."""
         with np.errstate(invalid="ignore"):
             error = np.where(np.isfinite(passes), (passes - reference[None]) ** 2, np.nan)
-        return np.nan_to_num(np.nanmean(error, axis=(0, 3)))
+        return np.nan_to_num(np.nanmean(error, axis=3))
 
     errors = {kind: {n: squared_error(p) for n, p in passes.items()}
               for kind, passes in (("equal_spp", equal_spp), ("equal_time", equal_time))}
@@ -93,16 +97,24 @@ def breakdown(ids: np.ndarray, labels: list[tuple[str, str]], equal_spp: dict[st
         if not mask.any():
             continue
         ratios: dict[str, dict[str, float | None]] = {n: {} for n in project}
+        intervals: dict[str, dict[str, list[float]]] = {n: {} for n in project}
         best: dict[str, str | None] = {}
         for kind, maps in errors.items():
-            sums = {n: float(e[mask].sum()) for n, e in maps.items()}
-            candidates = [n for n in mitsuba if n in sums]
-            best[kind] = min(candidates, key=lambda n: sums[n]) if candidates else None
+            per_pass = {n: e[:, mask].sum(axis=1) for n, e in maps.items()}
+            candidates = [n for n in mitsuba if n in per_pass]
+            best[kind] = min(candidates, key=lambda n: per_pass[n].mean()) if candidates else None
             for n in project:
-                denominator = sums[best[kind]] if best[kind] else 0.0
-                ratios[n][kind] = sums[n] / denominator if n in sums and denominator > 0 else None
-        shares = {n: float(e[mask].sum()) / total_error[n] if total_error[n] > 0 else None
+                base = per_pass[best[kind]] if best[kind] else None
+                if n not in per_pass or base is None or not base.mean() > 0:
+                    ratios[n][kind] = None
+                    continue
+                ratios[n][kind] = float(per_pass[n].mean() / base.mean())
+                mine = per_pass[n]
+                intervals[n][kind] = list(paired_bootstrap(
+                    lambda idx, a=mine, b=base: a[idx].mean() / b[idx].mean(), min(len(mine), len(base))))
+        shares = {n: float(e[:, mask].sum()) / total_error[n] if total_error[n] > 0 else None
                   for n, e in errors["equal_spp"].items()}
         entries.append(MaterialEntry(name=name, plugin=plugin, pixel_share=float(mask.mean()),
-                                     error_ratio=ratios, best_mitsuba=best, error_share=shares))
+                                     error_ratio=ratios, best_mitsuba=best, error_share=shares,
+                                     error_ratio_interval=intervals))
     return sorted(entries, key=lambda e: -e.pixel_share)

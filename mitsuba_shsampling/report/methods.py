@@ -105,11 +105,11 @@ METHODS: tuple[Method, ...] = (
     Method("sh_direct", "SH direct, a strategy per material (auto)",
            {"type": "sh_direct", "emitter_samples": 1, "bsdf_samples": 1},
            plugin="sh_direct", product_sampling=True, role=PROJECT),
-    # Without BSDF samples nothing covers the directions the compensated
-    # product never draws, so product-only sampling must not compensate.
-    Method("sh_product_only", "SH product sampling only (2 samples)",
-           {"type": "sh_direct", "emitter_samples": 2, "bsdf_samples": 0, "mis_compensation": False,
-            "strategy": "product"},
+    # The strategy of its name on every material: the product with the uncompensated map
+    # carries both samples where the BSDF has no Dirac part; the others run the product
+    # with their BSDF sample (integrators/strategy.py).
+    Method("sh_product_only", "SH product sampling only (strategy product_only, 2 samples)",
+           {"type": "sh_direct", "strategy": "product_only"},
            plugin="sh_direct", product_sampling=True, role=PROJECT),
     # Reference rows: the ideal the SH product is measured against (see module docstring).
     Method("oracle_direct", "reference row: exact tabulated product (oracle) + BSDF (MIS)",

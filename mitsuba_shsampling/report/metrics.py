@@ -12,6 +12,9 @@ method at one setting. Three kinds of statistics, one dataclass each:
   reference's. One number per pass, so the colour channels (strongly correlated
   in every render) are never treated as independent.
 
+Every interval of a ratio between two methods (the verdict's, the per-material
+breakdown's) is the paired bootstrap over passes of :func:`paired_bootstrap`.
+
 Non-finite pixel values (a NaN texel, a 0/0 in a plugin) are excluded from
 every statistic and counted in ``ErrorStats.non_finite``: a report never shows a
 ``nan`` without saying where it came from.
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Callable
 
 import numpy as np
 
@@ -39,6 +43,9 @@ FIREFLY_FLOOR = 1.0
 #: A report holds tens of tests (methods x samplers x equal spp/time), so 1e-3 keeps a
 #: false flag rare across a whole report.
 BIAS_ALPHA = 1e-3
+#: Bootstrap resamples and the two-sided coverage of every interval of a ratio.
+BOOTSTRAP_RESAMPLES = 2000
+INTERVAL = 0.90
 
 
 def luminance(images: np.ndarray) -> np.ndarray:
@@ -77,6 +84,22 @@ def efficiency(mse_value: float, time_s: float) -> float:
     """1 / (MSE x time): higher is better; inf for a zero-error or zero-time render."""
     denom = mse_value * time_s
     return float(1.0 / denom) if denom > 0 else float("inf")
+
+
+def paired_bootstrap(ratio: Callable[[np.ndarray], float], passes: int, seed: int = 0) -> tuple[float, float]:
+    """The :data:`INTERVAL` bootstrap interval of a ratio between two methods' statistics over
+    their ``passes`` passes; ``ratio(idx)`` is the ratio on the passes of index array ``idx``.
+
+    Paired: pass k of both methods is resampled together (the passes are i.i.d. across k; the
+    methods share seeds, so pairing also keeps their correlation). (NaN, NaN) if any
+    resampled ratio is not finite."""
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, passes, size=(BOOTSTRAP_RESAMPLES, passes))
+    ratios = np.array([ratio(i) for i in idx])
+    if not np.all(np.isfinite(ratios)):
+        return math.nan, math.nan
+    tail = (1 - INTERVAL) / 2
+    return float(np.quantile(ratios, tail)), float(np.quantile(ratios, 1 - tail))
 
 
 @dataclasses.dataclass

@@ -7,7 +7,9 @@ Methods that are compared are timed *interleaved* (:func:`interleaved_passes`:
 pass k of every method, then pass k + 1), so that a slow spell of the machine
 (a shared host, a frequency change) falls on all of them alike instead of on
 whichever method happened to be rendering: time ratios are only meaningful
-within one run, and this makes them meaningful within one run.
+within one run, and this makes them meaningful within one run. The order of the
+methods rotates from pass to pass, so that none always runs first (after a
+Python-side pause, with cold caches) or right after the same neighbour.
 With the ``independent`` sampler, changing spp or seed does not recompile;
 the stratified/low-discrepancy samplers recompile for each new sample count
 (measured on llvm_ad_rgb, 3.9.1: about 1 s each), so each new spp gets its own
@@ -170,7 +172,8 @@ class MethodRenderer:
 def interleaved_passes(jobs: dict[str, tuple[MethodRenderer, int]], count: int, seed0: int,
                        on_pass=None) -> tuple[dict[str, PassSet], dict[str, Exception]]:
     """``count`` timed passes of several methods, round robin: pass k of every method
-    before pass k + 1 of any (see the module's timing rule).
+    before pass k + 1 of any, pass k starting at the (k mod n)-th of the n methods (see the
+    module's timing rule).
 
     :param jobs: method name -> (its renderer, the spp to render; made admissible here).
     :param seed0: pass k of every method uses seed ``seed0 + k``.
@@ -189,8 +192,12 @@ def interleaved_passes(jobs: dict[str, tuple[MethodRenderer, int]], count: int, 
             failed[name] = err
     images: dict[str, list] = {name: [] for name in jobs if name not in failed}
     times: dict[str, list] = {name: [] for name in images}
+    order = list(images)
     for k in range(count):
-        for name in list(images):
+        shift = k % len(order) if order else 0
+        for name in order[shift:] + order[:shift]:
+            if name in failed:
+                continue
             renderer = jobs[name][0]
             try:
                 image, elapsed = renderer.render(spps[name], seed0 + k)

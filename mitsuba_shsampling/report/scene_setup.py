@@ -10,7 +10,7 @@
   ``mi.render(scene, sensor=...)``, so the sampler a report names is the one that ran;
 - the **environment map is rebuilt** only when a method or ``--envmap`` asks for it
   (MIS compensation, another map): same ``to_world`` and ``scale``, the scene's
-  other shapes and emitters reused as they are.
+  other shapes and emitters reused as they are (``render --envmap`` uses the same code).
 
 :func:`content_digest` keys the reference cache on what the image depends on:
 every file the scene references (by content) and every traversed parameter value.
@@ -86,7 +86,8 @@ def comparison_sensor(scene: mi.Scene, width: int, sampler: str, spp: int) -> mi
 def with_environment(scene: mi.Scene, filename: str | None = None,
                      mis_compensation: bool = False) -> mi.Scene:
     """``scene`` with its envmap rebuilt from ``filename`` (None: the same texels) and
-    ``mis_compensation``; ``to_world`` and ``scale`` are kept.
+    ``mis_compensation``; ``to_world`` and ``scale`` are kept, and so are the scene's other
+    emitters, shapes, sensors and integrator (``render --envmap`` renders with it).
 
     :raises SceneError: the scene has no ``envmap`` emitter.
     """
@@ -97,6 +98,8 @@ def with_environment(scene: mi.Scene, filename: str | None = None,
     # Emitters keep their order (the new envmap takes the old one's place), so that a seed
     # draws the same emitter choices as in the original scene.
     objects = {"type": "scene"}
+    if scene.integrator() is not None:
+        objects["integrator"] = scene.integrator()
     for i, emitter in enumerate(scene.emitters()):
         if emitter is env:
             objects[f"emitter_{i}"] = mi.load_dict(desc)

@@ -147,6 +147,8 @@ class MaterialEntry:
     :param error_ratio: method -> {"equal_spp": r, "equal_time": r}: the method's expected
         squared error summed over these pixels, over the best Mitsuba strategy's.
     :param best_mitsuba: {"equal_spp": name, "equal_time": name} of that strategy.
+    :param error_ratio_interval: method -> {"equal_spp": [low, high], "equal_time": ...}: the
+        paired bootstrap interval of each error ratio (None in reports from before it).
     :param error_share: method -> share of the method's equal-sample image error on these pixels.
     :param strategy: method -> {"strategy": name, "predicted_gain": variance of the material's
         best environment strategy over the chosen one's}, for methods that chose per material.
@@ -159,6 +161,7 @@ class MaterialEntry:
     best_mitsuba: dict[str, str | None]
     error_share: dict[str, float | None]
     strategy: dict[str, dict] = dataclasses.field(default_factory=dict)
+    error_ratio_interval: dict[str, dict[str, list[float]]] | None = None
 
 
 @dataclasses.dataclass
@@ -274,6 +277,9 @@ class VerdictCell:
     [``low``, ``high``] its bootstrap interval. All three are NaN (``n/a`` in the report) when
     the ratio has no finite value: a zero MSE (an all-black environment renders every pixel
     exactly) or a non-finite one (every pixel of a pass non-finite).
+    ``winner`` is first of all the contenders by point estimate; [``winner_low``,
+    ``winner_high``] the interval of its ratio to the ``runner_up``'s (None and NaN in reports
+    from before them, and with a single contender).
     """
 
     quantity: str
@@ -284,11 +290,20 @@ class VerdictCell:
     ratio: float
     low: float
     high: float
+    runner_up: str | None = None
+    winner_low: float = math.nan
+    winner_high: float = math.nan
 
     @property
     def decided(self) -> bool:
         """The interval excludes 1: the data decide between numerator and denominator."""
         return math.isfinite(self.low) and math.isfinite(self.high) and not (self.low <= 1.0 <= self.high)
+
+    @property
+    def winner_decided(self) -> bool:
+        """The interval of the winner over the runner-up excludes 1: it is first of all."""
+        finite = math.isfinite(self.winner_low) and math.isfinite(self.winner_high)
+        return finite and not (self.winner_low <= 1.0 <= self.winner_high)
 
     @property
     def numerator_better(self) -> bool:

@@ -19,11 +19,11 @@ the family that ran, ``direct``, ``direct`` with ``mis_compensation``, envmap-on
 BSDF-only for direct lighting, ``path`` for multi-bounce): what a user gets by switching
 the integrator (:data:`.methods.DEFAULT_PLUGIN_METHOD`; the first project method when
 that one did not run). The project's other rows follow, each against the same best
-Mitsuba strategy and named by its plugin parameters (``sh_direct (emitter_samples=2,
-bsdf_samples=0, ...)``). When no project method ran, the factor is the winner over the
-runner-up. Each interval is a paired
-bootstrap over passes: pass k of both methods is resampled together (the passes
-are i.i.d. across k; methods share seeds, so pairing also keeps their correlation).
+Mitsuba strategy and named by its plugin parameters (``sh_direct (strategy=product_only)``).
+When no project method ran, the factor is the winner over the runner-up. Each interval is
+the paired bootstrap over passes of :func:`.metrics.paired_bootstrap`: pass k of both methods
+is resampled together (the passes are i.i.d. across k; methods share seeds, so pairing also
+keeps their correlation).
 Reference rows (the oracle) are no contenders: they appear in the caveats only.
 """
 
@@ -34,13 +34,10 @@ import math
 import numpy as np
 
 from .methods import DEFAULT_PLUGIN_METHOD, MITSUBA, PROJECT, REFERENCE, role_of
-from .metrics import BIAS_ALPHA, TAIL_PERCENTILE
+from .metrics import BIAS_ALPHA, INTERVAL, TAIL_PERCENTILE, paired_bootstrap
 from .schema import (CONTEST_TITLES, MethodResult, PassResult, Report, RunResult, VerdictCell, VerdictOther,
                      VerdictRow, load_report)
 
-#: Bootstrap resamples and the two-sided coverage of the interval.
-BOOTSTRAP_RESAMPLES = 2000
-INTERVAL = 0.90
 #: A baseline pass shorter than this is dominated by per-launch overhead and timer noise.
 MIN_PASS_TIME_S = 0.020
 #: The baseline renders the same spp at equal samples and at equal time; per-sample times of
@@ -56,7 +53,7 @@ MAX_REFERENCE_NOISE = 0.1
 def configuration(name: str, result: MethodResult, family: str) -> str:
     """The plugin configuration of method ``name`` as a user writes it: ``sh_direct (defaults)``
     for :data:`.methods.DEFAULT_PLUGIN_METHOD`, else the plugin and the parameters the method
-    sets, ``sh_direct (emitter_samples=2, bsdf_samples=0, mis_compensation=false, strategy=product)``."""
+    sets, ``sh_direct (emitter_samples=2, bsdf_samples=0, strategy=product_only)``."""
     integrator = dict(result.integrator or {"type": name})
     plugin = integrator.pop("type", name)
     if name == DEFAULT_PLUGIN_METHOD.get(family) or not integrator:
@@ -72,15 +69,9 @@ def _ratio(x: float, y: float) -> float:
 
 def _paired_bootstrap(statistic, a: PassResult, b: PassResult, seed: int = 0) -> tuple[float, float]:
     """Interval of statistic(a_resampled) / statistic(b_resampled), pass indices shared
-    (NaN if any resampled ratio is: see :class:`VerdictCell`)."""
+    (:func:`.metrics.paired_bootstrap`; NaN if any resampled ratio is: see :class:`VerdictCell`)."""
     k = min(len(a.error.mse_per_pass), len(b.error.mse_per_pass))
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, k, size=(BOOTSTRAP_RESAMPLES, k))
-    ratios = np.array([_ratio(statistic(a, i), statistic(b, i)) for i in idx])
-    if not np.all(np.isfinite(ratios)):
-        return math.nan, math.nan
-    tail = (1 - INTERVAL) / 2
-    return float(np.quantile(ratios, tail)), float(np.quantile(ratios, 1 - tail))
+    return paired_bootstrap(lambda idx: _ratio(statistic(a, idx), statistic(b, idx)), k, seed)
 
 
 def _mse(entry: PassResult, idx=None) -> float:
@@ -120,16 +111,49 @@ def _cell(results: dict[str, MethodResult], kind: str, project: list[str], mitsu
 
     order = sorted(entries, key=rank)
     best_of = lambda names: min(names, key=rank)  # noqa: E731
-    winner = order[0]
+    winner, runner_up = order[0], order[1] if len(order) > 1 else None
     if project and mitsuba:
         numerator, denominator = lead or best_of(project), best_of(mitsuba)
     else:
-        numerator, denominator = winner, order[1] if len(order) > 1 else winner
+        numerator, denominator = winner, runner_up or winner
     a, b = entries[numerator], entries[denominator]
     low, high = _paired_bootstrap(statistic, a, b)
+    winner_low, winner_high = (_paired_bootstrap(statistic, entries[winner], entries[runner_up])
+                               if runner_up else (math.nan, math.nan))
     return VerdictCell(quantity=quantity, winner=winner, winner_is_project=winner in project,
                        numerator=numerator, denominator=denominator,
-                       ratio=_ratio(statistic(a), statistic(b)), low=low, high=high)
+                       ratio=_ratio(statistic(a), statistic(b)), low=low, high=high,
+                       runner_up=runner_up, winner_low=winner_low, winner_high=winner_high)
+
+
+#: The caveats that void the times of a row, by the start of their text: every efficiency
+#: ratio (both equal-time contests), or only the equal-time renders'.
+TIME_BUDGET_TOO_SMALL = "time budget too small to be meaningful"
+TIME_BUDGET_UNRELIABLE = "time budget unreliable"
+EQUAL_TIME_TOO_COARSE = "equal-time spp too coarse to compare"
+VOIDED_CONTESTS = {TIME_BUDGET_TOO_SMALL: ("equal_time", "time_normalised"),
+                   TIME_BUDGET_UNRELIABLE: ("equal_time", "time_normalised"),
+                   EQUAL_TIME_TOO_COARSE: ("equal_time",)}
+
+
+def voiding_caveat(kind: str, caveats: list[str]) -> str | None:
+    """The first of a row's ``caveats`` that voids its contest ``kind`` (:data:`KINDS`), by
+    its opening words (:data:`VOIDED_CONTESTS`); None if none does."""
+    return next((start for c in caveats for start, kinds in VOIDED_CONTESTS.items()
+                 if kind in kinds and c.startswith(start)), None)
+
+
+def winner_text(cell: VerdictCell, kind: str, caveats: list[str]) -> str:
+    """How reports name the winner of a contest: "best of all" only where the interval of the
+    winner over the runner-up excludes 1 and no caveat voids the contest's times."""
+    void = voiding_caveat(kind, caveats)
+    if void is not None:
+        return f"no winner: {void} (see the caveats)"
+    if not cell.winner_decided:
+        return f"no clear winner ({cell.winner} first by point estimate; {cell.runner_up or '-'} within its interval)"
+    best = "lowest MSE" if cell.quantity == "MSE" else "highest efficiency"
+    return (f"{cell.winner} best of all ({best}: [{cell.winner_low:.3g}, {cell.winner_high:.3g}] x "
+            f"{cell.runner_up}'s)")
 
 
 def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, contenders: list[str],
@@ -145,7 +169,7 @@ def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, c
     first_timed = results[names[0]].equal_time
     base_time = (first_timed.time_budget_s if first_timed else None) or 0.0
     if 0.0 < base_time < MIN_PASS_TIME_S:
-        notes.append(f"time budget too small to be meaningful: a {baseline} pass takes "
+        notes.append(f"{TIME_BUDGET_TOO_SMALL}: a {baseline} pass takes "
                      f"{1e3 * base_time:.1f} ms (per-launch overhead and timer noise weigh on every "
                      f"time; raise --res or --spp)")
     base = results.get(baseline)
@@ -153,7 +177,7 @@ def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, c
         per_sample = [p.time_s / p.spp for p in (base.equal_spp, base.equal_time)]
         drift = max(per_sample) / min(per_sample)
         if drift > MAX_TIME_DRIFT:
-            notes.append(f"time budget unreliable: a {baseline} pass took {drift:.1f}x as long at equal "
+            notes.append(f"{TIME_BUDGET_UNRELIABLE}: a {baseline} pass took {drift:.1f}x as long at equal "
                          f"samples ({1e3 * base.equal_spp.time_s:.1f} ms) as at equal time "
                          f"({1e3 * base.equal_time.time_s:.1f} ms), so the machine's speed changed "
                          f"during the run (other load, a cold start) and every time ratio with it; "
@@ -161,7 +185,7 @@ def _caveats(scene_path: str, run: RunResult, names: list[str], baseline: str, c
     spps = {n: results[n].equal_time.spp for n in contenders}
     if min(spps.values()) <= MIN_EQUAL_TIME_SPP:
         listing = ", ".join(f"{n} {s}" for n, s in spps.items())
-        notes.append(f"equal-time spp too coarse to compare ({listing}): raise --spp")
+        notes.append(f"{EQUAL_TIME_TOO_COARSE} ({listing}): raise --spp")
     kinds = (("equal_spp", "equal samples"), ("equal_time", "equal time"))
     heavy = [n for n in shown if any(getattr(results[n], k).tail_worse_than_baseline for k, _ in kinds)]
     if heavy:
