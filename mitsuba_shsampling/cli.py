@@ -162,6 +162,9 @@ def _print_summary(report: Report) -> None:
                           f"{e.tail.fireflies:>10}{_fmt(e.bias.p_value, '9.2g')}"
                           f"{'  BIAS?' if e.bias.flagged else ''}"
                           f"{'  TAIL' if e.tail_worse_than_baseline else ''}")
+            print("  before the first pass (s): " + ", ".join(
+                f"{name} set-up {_fmt(entry.setup_time_s, '.2f').strip()} + compile "
+                f"{_fmt(entry.compile_time_s, '.2f').strip()}" for name, entry in run.methods.items()))
             for name, entry in run.methods.items():
                 if entry.strategy_choice:
                     print(f"  {name} strategy (auto): {strategy_summary(entry.strategy_choice)}")

@@ -202,8 +202,14 @@ def render_file(args) -> dict:
     spp = sensor.sampler().sample_count() if args.spp is None else args.spp
     plan = pass_plan(spp, args.passes)
 
-    total = None
     start = time.perf_counter()
+    # The project's integrators plan before the first pass; the plan is shown before the
+    # passes run (Mitsuba's integrators have none).
+    strategy = integrator.plan(scene, sensor) if hasattr(integrator, "plan") else None
+    setup_s = time.perf_counter() - start
+    if strategy is not None:
+        print(f"plan ({strategy.mode}, set-up {setup_s:.2f} s): {strategy.summary()}", flush=True)
+    total = None
     with tqdm(total=spp, unit="spp", desc=os.path.basename(path), disable=args.no_progress,
               file=sys.stderr) as bar:
         frozen = {}
@@ -221,7 +227,8 @@ def render_file(args) -> dict:
     image = total / spp
     write_image(output, image, sensor.film())
     return {"output": os.path.abspath(output), "shape": image.shape, "spp": spp,
-            "passes": len(plan), "time_s": elapsed}
+            "passes": len(plan), "time_s": elapsed, "setup_s": setup_s,
+            "plan": strategy.summary() if strategy is not None else None}
 
 
 def load_integrator(desc: dict):
@@ -255,5 +262,6 @@ def main(args, set_variant) -> int:
     summary = render_file(args)
     height, width = summary["shape"][:2]
     print(f"wrote {summary['output']} ({width}x{height}, {summary['shape'][2]} channels, "
-          f"{summary['spp']} spp in {summary['passes']} pass(es), {summary['time_s']:.1f} s)")
+          f"{summary['spp']} spp in {summary['passes']} pass(es), {summary['time_s']:.1f} s "
+          f"of which set-up {summary['setup_s']:.1f} s)")
     return 0

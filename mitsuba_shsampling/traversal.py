@@ -33,9 +33,11 @@ def content_parts(obj: mi.Object) -> list:
     """What determines ``obj``'s behaviour, for a content key
     (:func:`~mitsuba_shsampling.build_cache.content_key`): its class, its description
     (``str``: the settings no parameter exposes, such as a microfacet distribution;
-    addresses and invented object names removed) and every traversed parameter's value
+    addresses, invented object names and a sampler's last wavefront removed) and every traversed parameter's value
     (arrays as numpy, others as they are)."""
     described = re.sub(r"0x[0-9a-fA-F]+|object_\d+", "", str(obj))
+    # A sampler describes its last render's wavefront too: state, not content.
+    described = re.sub(r"\n *(samples_per_wavefront|wavefront_size) = [^\n]*", "", described)
     parts = [obj.class_name(), described]
     for key, value in readable_parameters(mi.traverse(obj)):
         parts += [re.sub(r"object_\d+", "object", key), _host_value(value)]
@@ -44,7 +46,9 @@ def content_parts(obj: mi.Object) -> list:
 
 def _host_value(value):
     if dr.is_array_v(value):
-        # Read through a copy: evaluating a literal (a scale, say) gives the evaluated
-        # array a new variable, which would look like a parameter change to SceneCache.
-        return np.asarray(type(value)(value).numpy())
+        # Read through a detached copy: evaluating a literal (a scale, say) gives the
+        # evaluated array a new variable, which would look like a parameter change to
+        # SceneCache; and a plain copy of a differentiable parameter would be an AD edge.
+        copy = dr.detach(value) if dr.is_diff_v(value) else type(value)(value)
+        return np.asarray(copy.numpy())
     return value

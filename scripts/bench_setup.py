@@ -2,23 +2,28 @@
 
 The report's equal-time figures time passes only (``compare`` renders every
 method once, untimed, first). A user who times a whole render also pays each
-method's set-up once: for ``sh_direct`` the pyramid, the lobe fits, the strategy
-choice (quadrature and pilot passes) and the kernels' compilation; for Mitsuba's
-``direct`` its kernel's compilation. This benchmark measures it, per method, in a
-fresh process each:
+method's set-up once: for ``sh_direct`` the per-scene state (pyramid, lobe fits,
+cosine tables), the plan (quadrature and untimed pilot passes) and the kernels'
+compilation; for Mitsuba's ``direct`` its kernel's compilation. This benchmark
+measures it, per method, in a fresh process each, in three states of the caches:
 
-- ``cold``: an empty Dr.Jit kernel cache (``DRJIT_CACHE_DIR`` pointed at a new
-  directory), as on a scene's and map's first render on a machine;
-- ``warm``: the same cache again (a scene rendered before: Dr.Jit reloads the
-  compiled kernels from disk, the host-side set-up is paid again).
+- ``cold``: an empty Dr.Jit kernel cache (``DRJIT_CACHE_DIR``) and an empty build
+  cache (``SHSAMPLING_CACHE_DIR``), as on a machine's first render;
+- ``new map``: the kernels cached, the builds not (a scene or map not rendered
+  before, on a machine that has rendered);
+- ``warm``: both caches filled (a scene rendered before, in a new process).
 
 Per run: the first ``mi.render`` call's wall time (set-up, tracing, compilation,
 one pass) and the median wall time of the next passes as ``mi.render`` runs them
-(traced from Python each call). Set-up = first call - one pass. The table gives
-it in seconds and in passes of ``direct``, and the render time from which the
-set-up is paid back at a given equal-time efficiency E (``--efficiency``):
-a method with set-up T and E times the best strategy's efficiency gives the
-lower error from t = T E / (E - 1) of wall time on.
+(traced from Python each call). Set-up = first call - one pass; the plugin's own
+share of it (``integrator.plan``, timed before the first render: state, then
+plan) is given apart. Then, in the same process: a second integrator object with
+the same options (its first call - a pass), and a BSDF parameter change (the
+first call after ``params.update()`` - a pass). The table gives the set-up in
+seconds and in passes of ``direct``, and the render time from which the set-up is
+paid back at a given equal-time efficiency E (``--efficiency``): a method with
+set-up T and E times the other's efficiency gives the lower error from
+t = T E / (E - 1) of wall time on.
 
     python3 scripts/bench_setup.py [--scene material_studio] [--envmap FILE] [--res 480]
                                    [--spp 16] [--methods direct sh_direct] [--json OUT.json]
@@ -39,9 +44,13 @@ CHILD_FLAG = "--child"
 NEXT_PASSES = 5
 """Passes timed after the first call (their median is the pass time)."""
 
+STATES = {"cold": (False, False), "new map": (True, False), "warm": (True, True)}
+"""Cache state -> (Dr.Jit kernel cache filled, build cache filled)."""
+
 
 def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: str) -> dict:
-    """In this process: load the scene, render once (timed whole), then :data:`NEXT_PASSES` more."""
+    """In this process: load the scene, plan (timed), render once (timed whole), then
+    :data:`NEXT_PASSES` more; then a second object, then a BSDF change."""
     import drjit as dr
     import mitsuba as mi
 
@@ -53,37 +62,53 @@ def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: s
 
     path = builtin_scenes().get(scene_name, scene_name)
     scene = load_scene(path, envmap=envmap, res=res, spp=spp)
-    integrator = mi.load_dict({"type": method})
 
-    def one_pass(seed: int) -> float:
+    def one_pass(integrator, seed: int) -> float:
         start = time.perf_counter()
         image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
         dr.eval(image)
         dr.sync_thread()
         return time.perf_counter() - start
 
-    first = one_pass(0)
-    passes = [one_pass(1 + k) for k in range(NEXT_PASSES)]
-    record = {"first_call_s": first, "pass_s": statistics.median(passes), "passes_s": passes}
-    choice = getattr(integrator, "choice", None)
-    made = choice(scene) if choice is not None else None
+    def timed_plan(integrator) -> float:
+        start = time.perf_counter()
+        if hasattr(integrator, "plan"):
+            integrator.plan(scene)
+        return time.perf_counter() - start
+
+    integrator = mi.load_dict({"type": method})
+    plan_s = timed_plan(integrator)
+    first = plan_s + one_pass(integrator, 0)
+    passes = [one_pass(integrator, 1 + k) for k in range(NEXT_PASSES)]
+    pass_s = statistics.median(passes)
+    record = {"first_call_s": first, "plan_s": plan_s, "pass_s": pass_s, "passes_s": passes}
+    made = integrator.plan(scene) if hasattr(integrator, "plan") else None
     if made is not None:
-        record["choice_s"] = made.seconds
-        record["choice"] = made.summary()
-    env = getattr(getattr(integrator, "scenes", None), "get", None)
-    pyramid = getattr(env(scene), "pyramid", None) if env is not None else None
-    if pyramid is not None:
-        record["pyramid_build_s"] = pyramid.build_time_s
+        env = integrator.scenes.get(scene)
+        record.update(state_s=env.build_seconds, choice_s=made.setup_seconds - env.build_seconds,
+                      choice=made.summary(), plan_mode=made.mode, costs=made.costs["source"],
+                      pyramid_build_s=env.pyramid.build_time_s if env.pyramid is not None else None)
+
+    second = mi.load_dict({"type": method})
+    record["second_object_s"] = timed_plan(second) + one_pass(second, 100) - pass_s
+
+    params = mi.traverse(scene)
+    key = next((k for k in params.keys() if k.endswith(".alpha.value") or k.endswith(".alpha")), None)
+    if key is not None:
+        params[key] = params[key] * 1.5
+        params.update()
+        record["bsdf_change_s"] = timed_plan(integrator) + one_pass(integrator, 200) - pass_s
+        record["bsdf_changed"] = key
     return record
 
 
-def measure(args, method: str, cache_dir: str) -> dict:
-    """One child process; its record plus the method's name."""
+def measure(args, method: str, kernels: str, builds: str) -> dict:
+    """One child process, with these kernel and build cache folders; its record."""
     command = [sys.executable, os.path.abspath(__file__), CHILD_FLAG,
                "--scene", args.scene, "--res", str(args.res), "--spp", str(args.spp), "--methods", method]
     if args.envmap:
         command += ["--envmap", args.envmap]
-    environment = {**os.environ, "DRJIT_CACHE_DIR": cache_dir}
+    environment = {**os.environ, "DRJIT_CACHE_DIR": kernels, "SHSAMPLING_CACHE_DIR": builds}
     done = subprocess.run(command, env=environment, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"{method}: the child process failed:\n{done.stderr[-2000:]}")
@@ -105,6 +130,8 @@ def main(argv=None) -> None:
     parser.add_argument("--methods", nargs="+", default=["direct", "sh_direct"])
     parser.add_argument("--efficiency", type=float, default=1.5,
                         help="equal-time efficiency over direct at which to state the payback time")
+    parser.add_argument("--states", nargs="+", choices=list(STATES), default=list(STATES),
+                        help="cache states to measure, in this order (default: all)")
     parser.add_argument("--json", default="bench_setup.json")
     parser.add_argument(CHILD_FLAG, action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -115,24 +142,35 @@ def main(argv=None) -> None:
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_setup_") as root:
         for method in args.methods:
-            cache = os.path.join(root, method)  # a cache of its own: cold is cold for every method
-            for state in ("cold", "warm"):
-                record = measure(args, method, cache)
+            # Caches of its own, so that cold is cold for every method; a state that keeps a
+            # cache reads the one the states before it filled.
+            kernels = builds = None
+            for state in args.states:
+                kernels_kept, builds_kept = STATES[state]
+                if not kernels_kept or kernels is None:
+                    kernels = os.path.join(root, method, f"kernels-{state}")
+                if not builds_kept or builds is None:
+                    builds = os.path.join(root, method, f"builds-{state}")
+                record = measure(args, method, kernels, builds)
                 record.update(method=method, cache=state, setup_s=record["first_call_s"] - record["pass_s"])
                 rows.append(record)
     direct_pass = next((r["pass_s"] for r in rows if r["method"] == "direct"), None)
     print(f"{args.scene} at {args.res} px wide, {args.spp} spp a pass"
           + (f", envmap {os.path.basename(args.envmap)}" if args.envmap else ""))
-    print(f"{'method':<12}{'cache':<7}{'first call s':>13}{'pass s':>9}{'set-up s':>10}"
-          f"{'in direct passes':>18}{'choice s':>10}{'pyramid s':>11}{'payback s':>11}")
+    print(f"{'method':<12}{'cache':<9}{'first call s':>13}{'pass s':>9}{'set-up s':>10}{'in direct passes':>18}"
+          f"{'state s':>9}{'plan s':>8}{'compile s':>11}{'2nd object s':>14}{'BSDF change s':>15}{'payback s':>11}")
+    nan = float("nan")
     for r in rows:
-        in_passes = r["setup_s"] / direct_pass if direct_pass else float("nan")
+        in_passes = r["setup_s"] / direct_pass if direct_pass else nan
         extra = r["setup_s"] - next((d["setup_s"] for d in rows if d["method"] == "direct" and d["cache"] == r["cache"]), 0.0)
         r["payback_s"] = payback_time(max(extra, 0.0), args.efficiency) if r["method"] != "direct" else None
+        r["compile_s"] = r["setup_s"] - r["plan_s"]
         payback = f"{r['payback_s']:>11.1f}" if r["payback_s"] is not None else f"{'':>11}"
-        print(f"{r['method']:<12}{r['cache']:<7}{r['first_call_s']:>13.2f}{r['pass_s']:>9.3f}{r['setup_s']:>10.2f}"
-              f"{in_passes:>18.1f}{r.get('choice_s', float('nan')):>10.2f}{r.get('pyramid_build_s', float('nan')):>11.2f}"
-              + payback)
+        print(f"{r['method']:<12}{r['cache']:<9}{r['first_call_s']:>13.2f}{r['pass_s']:>9.3f}{r['setup_s']:>10.2f}"
+              f"{in_passes:>18.1f}{r.get('state_s', nan):>9.2f}{r.get('choice_s', nan):>8.2f}{r['compile_s']:>11.2f}"
+              f"{r['second_object_s']:>14.2f}{r.get('bsdf_change_s', nan):>15.2f}" + payback)
+    print("state: the per-scene state (pyramid, lobe fits, tables); plan: the strategy plan; compile: the rest of "
+          "the set-up (tracing and compiling the kernels)")
     print(f"payback: wall time from which the method's lower error at {args.efficiency}x direct's "
           "equal-time efficiency has paid for its extra set-up")
     from mitsuba_shsampling.benchmarks import write_json

@@ -28,6 +28,8 @@ def test_render_writes_a_finite_exr_of_the_requested_size_with_a_python_plugin(t
                           env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "6/6 [" in proc.stderr  # the progress bar, complete
+    # The plan, before the passes: how it was made, what it cost, each material's strategy.
+    assert "plan (estimate, set-up " in proc.stdout and "material: " in proc.stdout.split("plan (")[1]
     image = np.array(mi.Bitmap(str(out)))
     assert image.shape == (12, 12, 3)
     assert np.all(np.isfinite(image)) and image.mean() > 0

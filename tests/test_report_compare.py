@@ -512,3 +512,15 @@ def test_every_method_the_verdict_compares_is_defined_on_the_page():
     assert "emitter_samples=2, bsdf_samples=0" in defined["env_only"]
     assert defined["sh_product_only"].startswith("this package&#x27;s plugin: <code>sh_direct (strategy=product_only)")
     assert "direct, direct_misc, env_only" in defined["best Mitsuba"]
+
+
+def test_the_plugins_set_up_is_reported_apart_from_the_kernels_compilation(plain_scene):
+    """Mitsuba's integrators set up at load; the plugin's per-scene state and plan are timed
+    on their own, before the first (compiling) pass, in the JSON, the CSV and the page."""
+    report = compare(plain_scene, "scene.xml", plain_scene / "out", methods="direct,sh_direct", passes="2")
+    methods = report["scenes"][0]["runs"][0]["methods"]
+    assert methods["direct"]["setup_time_s"] < 0.01
+    assert methods["sh_direct"]["setup_time_s"] > 0
+    assert all(m["compile_time_s"] >= 0 for m in methods.values())
+    assert "setup_time_s" in (plain_scene / "out" / "metrics.csv").read_text().splitlines()[0]
+    assert "<th>set-up (s)</th><th>compile (s)</th>" in (plain_scene / "out" / "index.html").read_text()

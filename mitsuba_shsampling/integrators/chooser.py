@@ -488,6 +488,28 @@ def materials_report(env, p: Predictions, choice: dict, lean_choice: dict, varia
     return report
 
 
+def stored_choice(env, stored: dict) -> StrategyChoice:
+    """Apply a plan read from a file (:func:`.plan_file.load`) to ``env``; its
+    :class:`StrategyChoice` (``mode`` ``file``). It runs what the file says: the same
+    strategies, the same kernel (lean only where no material runs a product)."""
+    choice = stored["strategies"]
+    lean = stored["lean"] and not any(s.uses_product for s in choice.values())
+    if env.lobes is not None and env.cosine_tables:
+        env.lobes.sample_from_tables({key for key in env.lobes.cosine_ids
+                                      if env.material_name(key) in set(stored["cosine_tables"])})
+    apply_choice(env, choice, lean)
+    plan = stored["plan"]
+    shown = {m["name"]: m for m in plan.get("materials", [])}
+    materials = []
+    for key, strategy in choice.items():
+        name = env.material_name(key)
+        row = shown.get(name, {})
+        materials.append(MaterialChoice(name, strategy, row.get("share", 0.0), {}, row.get("predicted_gain", 1.0),
+                                        row.get("forced", False)))
+    return StrategyChoice(materials, {}, plan.get("predicted_gain", 1.0), lean, 0.0,
+                          cosine_tables=sorted(stored["cosine_tables"]), mode="file", costs=plan.get("costs", {}))
+
+
 # ----------------------------------------------------------------- the integrators' planner
 
 class StrategyChooser:
@@ -533,7 +555,7 @@ class StrategyChooser:
                                   else "")
         stored = plan_file.load(file, env, env.options_key) if file else None
         if stored is not None:
-            env.choice = stored
+            env.choice = stored_choice(env, stored)
         else:
             env.choice = self._choose(env, scene, sensor, render, integrator)
             if file:

@@ -53,11 +53,12 @@ def save(path: str, choice, options_key: str) -> None:
         warnings.warn(f"mitsuba_shsampling: cannot write the plan file {path} ({err})", RuntimeWarning)
 
 
-def load(path: str, env, options_key: str):
-    """The plan in ``path`` applied to ``env`` (a :class:`~.chooser.StrategyChoice` with
-    ``mode`` ``file``), or None (with a warning where the file exists but does not fit)."""
-    from .chooser import MaterialChoice, StrategyChoice, apply_choice
-
+def load(path: str, env, options_key: str) -> dict | None:
+    """The plan stored in ``path`` if it fits ``env``'s scene and ``options_key``: material
+    registry id -> :class:`~.strategy.Strategy` (``strategies``), ``lean``, the names of the
+    materials whose cosine lobes read their tables (``cosine_tables``) and the plan as shown
+    (``plan``). None where there is no file, and with a warning where it cannot be read or
+    does not fit (the chooser then makes a plan and rewrites the file)."""
     if not os.path.exists(path):
         return None
     try:
@@ -65,6 +66,7 @@ def load(path: str, env, options_key: str):
             record = json.load(f)
         stored = {name: strategy_named(label) for name, label in record["strategies"].items()}
         fits = record.get("format") == FORMAT and record["options"] == options_key
+        lean, cosine_tables = bool(record["lean"]), list(record.get("cosine_tables", []))
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
         warnings.warn(f"{env.plugin}: the plan file {path} cannot be read ({err}); making a new plan", RuntimeWarning)
         return None
@@ -76,18 +78,5 @@ def load(path: str, env, options_key: str):
     if why:
         warnings.warn(f"{env.plugin}: the plan file {path} does not fit ({why}); making a new plan", RuntimeWarning)
         return None
-    choice = {by_name[name]: strategy for name, strategy in stored.items()}
-    lean = bool(record["lean"]) and not any(s.uses_product for s in choice.values())
-    if env.lobes is not None and env.cosine_tables:
-        env.lobes.sample_from_tables({key for key in env.lobes.cosine_ids
-                                      if env.material_name(key) in set(record.get("cosine_tables", []))})
-    apply_choice(env, choice, lean)
-    plan = record.get("plan", {})
-    shown = {m["name"]: m for m in plan.get("materials", [])}
-    materials = [MaterialChoice(name, strategy, shown.get(name, {}).get("share", 0.0), {},
-                                shown.get(name, {}).get("predicted_gain", 1.0), shown.get(name, {}).get("forced", False))
-                 for name, strategy in stored.items()]
-    return StrategyChoice(materials, {}, plan.get("predicted_gain", 1.0), lean, 0.0,
-                          cosine_tables=sorted(record.get("cosine_tables", [])), mode="file",
-                          costs=plan.get("costs", {}))
-
+    return {"strategies": {by_name[name]: strategy for name, strategy in stored.items()}, "lean": lean,
+            "cosine_tables": cosine_tables, "plan": record.get("plan", {})}

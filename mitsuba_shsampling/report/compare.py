@@ -491,6 +491,7 @@ class SceneComparison:
         results = {m.name: MethodResult(
             label=m.label, family=m.family, rays_per_sample=m.rays_per_sample, integrator=m.integrator,
             scene_params=m.scene_params, compile_time_s=renderers[m.name].compile_time_s,
+            setup_time_s=renderers[m.name].setup_time_s,
             equal_spp=measure(equal_spp[m.name], refs[m.family]), oracle=m.oracle) for m in methods}
 
         # Equal time: each method gets the spp that costs the baseline's time per pass.
@@ -547,7 +548,7 @@ def count_renders(settings: CompareSettings, n_methods: int) -> int:
 CSV_FIELDS = ["scene", "sampler", "method", "comparison", "spp", "mse", "rel_mse", "pixel_variance",
               "time_s", "efficiency", "max_pixel", "abs_error_percentile", "fireflies", "bias_t",
               "bias_p_value", "bias_flagged", "mse_ratio_vs_baseline", "efficiency_ratio_vs_baseline",
-              "compile_time_s"]
+              "setup_time_s", "compile_time_s"]
 
 
 def write_csv(path: str, report: Report) -> None:
@@ -569,7 +570,7 @@ def write_csv(path: str, report: Report) -> None:
                             "bias_t": e.bias.t, "bias_p_value": e.bias.p_value, "bias_flagged": e.bias.flagged,
                             "mse_ratio_vs_baseline": e.mse_ratio_vs_baseline,
                             "efficiency_ratio_vs_baseline": e.efficiency_ratio_vs_baseline,
-                            "compile_time_s": entry.compile_time_s}))
+                            "setup_time_s": entry.setup_time_s, "compile_time_s": entry.compile_time_s}))
 
 
 def run_compare(scene_paths: list[str], settings: CompareSettings) -> Report:

@@ -231,7 +231,7 @@ def _metrics_table(run: RunResult) -> str:
             ("fireflies", lambda e: e.tail.fireflies),
             ("bias p", lambda e: e.bias.p_value)]
     head = "".join(f"<th>{c}</th>" for c, _ in cols)
-    rows = [f'<tr><th>method</th><th>compile (s)</th><th>comparison</th>{head}<th>tail vs baseline</th></tr>']
+    rows = [f'<tr><th>method</th><th>set-up (s)</th><th>compile (s)</th><th>comparison</th>{head}<th>tail vs baseline</th></tr>']
     for name, entry in run.methods.items():
         # Oracle rows are references (the ideal product sampler), not contenders.
         shown = f"{_e(name)} (reference row)" if entry.oracle else _e(name)
@@ -243,8 +243,8 @@ def _metrics_table(run: RunResult) -> str:
             worse = e.tail_worse_than_baseline
             tail = (f'<td class="name bad" title="{_e("; ".join(worse))}">worse: {len(worse)} of 3</td>' if worse
                     else '<td class="name">ok</td>')
-            lead = (f'<td class="name" rowspan="2">{shown}</td><td rowspan="2">{_num(entry.compile_time_s, 3)}</td>'
-                    if kind == "equal_spp" else "")
+            lead = (f'<td class="name" rowspan="2">{shown}</td><td rowspan="2">{_num(entry.setup_time_s, 3)}</td>'
+                    f'<td rowspan="2">{_num(entry.compile_time_s, 3)}</td>' if kind == "equal_spp" else "")
             rows.append(f'<tr>{lead}<td class="name">{title}</td>{cells}{tail}</tr>')
     return '<div class="scroll"><table>' + "".join(rows) + "</table></div>"
 

@@ -110,6 +110,9 @@ class MethodRenderer:
         self.freeze = settings.get("freeze", True)
         self.first_render_s: float | None = None
         self.compile_time_s: float | None = None
+        #: The plugin's own set-up (per-scene state and plan, :meth:`plan`), timed apart
+        #: from the kernels' compilation; 0 for Mitsuba's integrators, which set up at load.
+        self.setup_time_s: float | None = None
         self.warm_spps: set[int] = set()
         self._frozen: dict[int, FrozenPass] = {}
 
@@ -150,6 +153,17 @@ class MethodRenderer:
             self._frozen[spp] = FrozenPass(self.scene, self.sensor, self.integrator, spp)
             np.array(self._frozen[spp](SEED_WARMUP + 1))
 
+    def plan(self) -> None:
+        """Make the integrator's per-scene state and plan now, once, timed
+        (:attr:`setup_time_s`): the project's integrators make them before their first
+        pass (``integrator.plan``), Mitsuba's at load."""
+        if self.setup_time_s is not None:
+            return
+        start = time.perf_counter()
+        if hasattr(self.integrator, "plan"):
+            self.integrator.plan(self.scene, self.sensor)
+        self.setup_time_s = time.perf_counter() - start
+
     def actual_spp(self) -> int:
         """The sample count of the last render (samplers round some requests)."""
         return int(self.sensor.sampler().sample_count())
@@ -158,8 +172,10 @@ class MethodRenderer:
         """Compile the kernels with one untimed render, then (with ``record``) record the
         frozen pass (:meth:`record`); returns the first render's wall time (s).
 
-        The compile time is that time minus the median of the next timed passes.
+        The compile time is that time minus the median of the next timed passes; the
+        plugin's set-up is timed before it (:meth:`plan`).
         """
+        self.plan()
         _, elapsed = self.render(spp, SEED_WARMUP)
         if record:
             self.record(spp)

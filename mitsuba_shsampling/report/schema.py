@@ -111,7 +111,9 @@ class MethodResult:
     """One method of one scene and sampler.
 
     :param integrator: its ``mi.load_dict`` description (:attr:`.methods.Method.integrator`).
-    :param compile_time_s: the first render's time over a warm pass's (s).
+    :param compile_time_s: the first render's time over a warm pass's (s), after the set-up.
+    :param setup_time_s: the plugin's set-up before its first pass (per-scene state and
+        plan, s); 0 for Mitsuba's integrators; None in reports from before it was timed.
     :param equal_time: None until the equal-time phase measured it.
     :param oracle: a reference row (:attr:`.methods.Method.oracle`), not a contender.
     :param strategy_choice: what ``strategy`` ``auto`` chose before the first pass
@@ -133,6 +135,7 @@ class MethodResult:
     oracle: bool = False
     strategy_choice: dict | None = None
     frozen: bool | None = None
+    setup_time_s: float | None = None
 
 
 # One run (scene x sampler) and one scene --------------------------------------------------------

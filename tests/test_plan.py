@@ -1,0 +1,308 @@
+"""Specification of the plan: made once, the same in every process, reusable and in view.
+
+``strategy`` ``auto`` plans each material's environment strategy from a cost model
+(a calibration of this machine, else the shipped figures), never from a clock
+unless ``plan`` is ``measure``. The plan can be made before the first render,
+saved, loaded and forced per material; its inputs are built once per content and
+shared by every integrator object with the same options; a parameter change
+rebuilds only what it touches; and the plan is logged.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import warnings
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+mi.set_variant("llvm_ad_rgb")
+
+from mitsuba_shsampling import build_cache  # noqa: E402
+from mitsuba_shsampling.envmap import pyramid as pyramid_module  # noqa: E402
+from mitsuba_shsampling.integrators import chooser as chooser_module  # noqa: E402
+from mitsuba_shsampling.integrators import costs, pilots, register  # noqa: E402
+from mitsuba_shsampling.integrators.options import OptionError  # noqa: E402
+from mitsuba_shsampling.integrators.sharing import forget_shared  # noqa: E402
+from mitsuba_shsampling.lobes import scene_lobes  # noqa: E402
+
+from test_integrators import MATERIALS, make_scene  # noqa: E402
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PLANNED = ("ggx", "diffuse", "roughplastic")
+
+
+@pytest.fixture(autouse=True)
+def fresh_state():
+    """Each test starts as a fresh process would: no shared state, no in-process builds."""
+    register()
+    forget_shared()
+    build_cache.clear_in_process()
+    yield
+    forget_shared()
+
+
+def scene_of(names=PLANNED):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return make_scene(materials={k: MATERIALS[k] for k in names})
+
+
+def sh_direct(**params):
+    return mi.load_dict({"type": "sh_direct", "max_bands": 5, **params})
+
+
+def count_calls(monkeypatch, module, name):
+    """Wrap ``module.name`` so that its calls are counted; returns the counter (a list)."""
+    calls, original = [], getattr(module, name)
+
+    def counted(*args, **kwargs):
+        calls.append(args)
+        return original(*args, **kwargs)
+    monkeypatch.setattr(module, name, counted)
+    return calls
+
+
+# ------------------------------------------------------------ no clock by default
+
+def test_the_default_plan_reads_no_clock_and_says_where_its_costs_come_from(monkeypatch):
+    def no_clock(*_):
+        raise AssertionError("a default plan timed a pass")
+    monkeypatch.setattr(pilots, "kernel_time", no_clock)
+    choice = sh_direct().plan(scene_of())
+    assert choice.mode == "estimate"
+    assert choice.costs["source"] == "shipped"
+    assert {m.name for m in choice.materials} >= set(PLANNED)
+
+
+def test_without_a_calibration_the_shipped_model_plans_and_with_one_the_calibration_does():
+    assert costs.cost_model("direct") == costs.SHIPPED_MODELS["direct"]
+    assert costs.cost_model("path") == costs.SHIPPED_MODELS["path"]
+    calibrated = costs.CostModel(product_code=0.5, environment_only=9.0, product_walk=9.0, product_table=9.0,
+                                 product_only_walk=9.0, product_only_table=9.0)
+    path = costs.save_calibration({"direct": calibrated, "path": calibrated}, seconds=1.0)
+    try:
+        model = costs.cost_model("direct")
+        assert model.source == path and model.product_walk == 9.0
+        # Every product strategy now costs nine passes per unit of film: nothing pays for it.
+        choice = sh_direct().plan(scene_of())
+        assert choice.costs["source"] == path
+        assert {m.strategy.label for m in choice.materials} <= {"environment"}
+    finally:
+        os.remove(path)
+    assert costs.cost_model("direct").source == "shipped"
+
+
+def test_a_calibration_of_other_code_is_not_read(tmp_path):
+    path = costs.save_calibration({"direct": costs.SHIPPED, "path": costs.SHIPPED}, seconds=1.0)
+    try:
+        record = json.loads(open(path).read())
+        record["code"] = "another version"
+        record["models"]["direct"]["product_walk"] = 123.0
+        open(path, "w").write(json.dumps(record))
+        assert costs.cost_model("direct") == costs.SHIPPED_MODELS["direct"]
+    finally:
+        os.remove(path)
+
+
+FRESH_PROCESS = """
+import json, sys
+import numpy as np
+import mitsuba_shsampling, mitsuba as mi
+mi.set_variant("llvm_ad_rgb")
+sys.path.insert(0, {tests!r})
+from test_integrators import MATERIALS, make_scene
+from mitsuba_shsampling.integrators import register
+register()
+scene = make_scene(materials={{k: MATERIALS[k] for k in {names!r}}})
+sh = mi.load_dict({{"type": "sh_direct", "max_bands": 5}})
+image = mi.render(scene, integrator=sh, spp=4, seed=7)
+np.save({out!r}, np.asarray(image))
+print(json.dumps(sh.choice(scene).assignment()))
+"""
+
+
+def test_five_fresh_processes_make_one_plan_and_the_same_image(tmp_path):
+    """Each process builds from an empty cache folder, as on a new machine."""
+    procs = []
+    for k in range(5):
+        code = FRESH_PROCESS.format(tests=os.path.join(REPO, "tests"), names=PLANNED, out=str(tmp_path / f"{k}.npy"))
+        env = dict(os.environ, SHSAMPLING_CACHE_DIR=str(tmp_path / f"cache{k}"),
+                   PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        procs.append(subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True))
+    plans = []
+    for proc in procs:
+        out, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err
+        plans.append(out.strip().splitlines()[-1])
+    assert len(set(plans)) == 1, plans
+    images = [np.load(tmp_path / f"{k}.npy") for k in range(5)]
+    for image in images[1:]:
+        assert np.sqrt(np.mean((image - images[0]) ** 2)) / np.sqrt(np.mean(images[0] ** 2)) < 1e-4
+
+
+# ------------------------------------------------------------ pinning
+
+def test_plan_is_made_before_the_first_render_and_the_render_keeps_it(monkeypatch):
+    scene = scene_of()
+    sh = sh_direct()
+    assert sh.choice(scene) is None
+    choice = sh.plan(scene)
+    assert choice is not None and sh.choice(scene) is choice
+    chosen = count_calls(monkeypatch, chooser_module, "choose_strategies")
+    mi.render(scene, integrator=sh, spp=1)
+    assert chosen == [] and sh.choice(scene) is choice
+
+
+def test_a_plan_file_is_written_then_read_and_runs_what_it_says(tmp_path, monkeypatch):
+    path = str(tmp_path / "plan.json")
+    scene = scene_of()
+    made = sh_direct(plan_file=path).plan(scene)
+    stored = json.loads(open(path).read())
+    assert stored["strategies"] == made.assignment()
+
+    forget_shared()
+    chosen = count_calls(monkeypatch, chooser_module, "choose_strategies")
+    loaded = sh_direct(plan_file=path).plan(scene)
+    assert chosen == [] and loaded.mode == "file" and loaded.assignment() == made.assignment()
+    assert loaded.lean == made.lean and loaded.cosine_tables == made.cosine_tables
+
+
+def test_a_plan_file_of_other_materials_or_options_is_replaced_with_a_warning(tmp_path):
+    path = str(tmp_path / "plan.json")
+    sh_direct(plan_file=path).plan(scene_of(("ggx", "diffuse")))
+    forget_shared()
+    with pytest.warns(RuntimeWarning, match="does not fit.*materials"):
+        choice = sh_direct(plan_file=path).plan(scene_of())
+    assert choice.mode == "estimate" and set(json.loads(open(path).read())["strategies"]) >= set(PLANNED)
+    forget_shared()
+    with pytest.warns(RuntimeWarning, match="other options"):
+        sh_direct(plan_file=path, emitter_samples=2).plan(scene_of())
+
+
+def test_an_unreadable_plan_file_is_replaced_with_a_warning(tmp_path):
+    path = tmp_path / "plan.json"
+    path.write_text("{ not json")
+    with pytest.warns(RuntimeWarning, match="cannot be read"):
+        choice = sh_direct(plan_file=str(path)).plan(scene_of())
+    assert choice.mode == "estimate"
+
+
+def test_a_measured_plan_is_kept_like_wisdom_and_reused_by_the_next_process(monkeypatch):
+    scene = scene_of(("ggx", "diffuse"))
+    measured = sh_direct(plan="measure").plan(scene)
+    assert measured.mode == "measure" and measured.costs["source"] == "measured in the scene"
+    forget_shared()
+    chosen = count_calls(monkeypatch, chooser_module, "choose_strategies")
+    again = sh_direct(plan="measure").plan(scene)
+    assert chosen == [] and again.mode == "file" and again.assignment() == measured.assignment()
+
+
+def test_materials_named_in_strategy_keep_their_strategy_and_the_rest_are_planned():
+    choice = sh_direct(strategy="ggx=product,diffuse=environment").plan(scene_of())
+    by_name = {m.name: m for m in choice.materials}
+    assert by_name["ggx"].strategy.label == "product" and by_name["ggx"].forced
+    assert by_name["diffuse"].strategy.label == "environment" and by_name["diffuse"].forced
+    assert not by_name["roughplastic"].forced
+
+
+def test_an_unknown_material_or_a_strategy_it_cannot_run_is_an_error_naming_it():
+    with pytest.raises(OptionError, match="'copper'.*does not have.*ggx"):
+        sh_direct(strategy="copper=product").plan(scene_of())
+    with pytest.raises(OptionError, match="'smooth' cannot run 'product_only'"):
+        sh_direct(strategy="smooth=product_only").plan(scene_of(("ggx", "smooth")))
+    # Checked when the plugin loads (Mitsuba reports a plugin's error as a RuntimeError).
+    with pytest.raises(RuntimeError, match="'ggx=' must be 'material=strategy'"):
+        sh_direct(strategy="ggx=")
+
+
+# ------------------------------------------------------------ reuse
+
+def test_a_second_object_with_the_same_options_shares_the_state_and_the_plan(monkeypatch):
+    scene = scene_of()
+    first = sh_direct().plan(scene)
+    built = count_calls(monkeypatch, pyramid_module, "_pyramid_arrays")
+    chosen = count_calls(monkeypatch, chooser_module, "choose_strategies")
+    second = sh_direct()
+    assert second.plan(scene) is first
+    assert built == [] and chosen == []
+
+
+def test_a_bsdf_change_refits_that_bsdf_alone_and_keeps_the_pyramid(monkeypatch):
+    """The state is rebuilt, but each build it reads is looked up by its inputs' content."""
+    scene = scene_of()
+    sh = sh_direct()
+    sh.plan(scene)
+    fitted = count_calls(monkeypatch, scene_lobes.SceneLobes, "_fit_bsdf_now")
+    built = count_calls(monkeypatch, pyramid_module, "_pyramid_arrays")
+    params = mi.traverse(scene)
+    params["ggx.bsdf.alpha.value"] = 0.35
+    params.update()
+    assert sh.plan(scene) is not None
+    assert len(fitted) == 1 and built == []
+
+
+def test_an_envmap_change_rebuilds_the_pyramid_alone(monkeypatch):
+    scene = scene_of()
+    sh = sh_direct()
+    sh.plan(scene)
+    fitted = count_calls(monkeypatch, scene_lobes.SceneLobes, "_fit_bsdf_now")
+    built = count_calls(monkeypatch, pyramid_module, "_pyramid_arrays")
+    params = mi.traverse(scene)
+    data = params["env.data"]
+    params["env.data"] = data * 0.5 + 0.01
+    params.update()
+    sh.plan(scene)
+    assert len(built) >= 1 and fitted == []
+
+
+def test_a_pyramid_read_from_the_disk_cache_equals_a_fresh_build(monkeypatch, tmp_path):
+    monkeypatch.setenv("SHSAMPLING_CACHE_DIR", str(tmp_path))
+    scene = scene_of(("ggx",))
+    fresh = sh_direct().scenes.get(scene).pyramid
+    forget_shared()
+    build_cache.clear_in_process()
+    built = count_calls(monkeypatch, pyramid_module, "_pyramid_arrays")
+    cached = sh_direct().scenes.get(scene).pyramid
+    assert built == []
+    assert (cached.depth, cached.total, cached.radiant_total) == (fresh.depth, fresh.total, fresh.radiant_total)
+    for name in ("buffer", "records"):
+        assert np.array_equal(getattr(fresh, name).numpy(), getattr(cached, name).numpy(), equal_nan=True)
+
+
+# ------------------------------------------------------------ in view
+
+def test_the_plan_is_one_info_line_with_the_set_up_time(capfd):
+    level = mi.logger().log_level()
+    mi.set_log_level(mi.LogLevel.Info)
+    try:
+        choice = sh_direct().plan(scene_of())
+        sh_direct().plan(scene_of())  # another scene object with equal content: planned again
+    finally:
+        mi.set_log_level(level)
+    lines = [line for line in capfd.readouterr().out.splitlines() if "sh_direct: plan" in line]
+    assert len(lines) == 2
+    assert f"set-up {choice.setup_seconds:.2f} s" in lines[0] and "ggx" in lines[0]
+    assert choice.setup_seconds > 0
+
+
+def test_sh_path_plans_before_its_first_render_from_the_path_model():
+    scene = scene_of(("ggx", "diffuse"))
+    sh = mi.load_dict({"type": "sh_path", "max_depth": 3, "max_bands": 5})
+    choice = sh.plan(scene)
+    assert choice.mode == "estimate" and choice.costs["product_walk"] == costs.SHIPPED_MODELS["path"].product_walk
+
+
+def test_a_device_array_read_for_a_content_key_leaves_the_scene_unchanged():
+    """Reading a literal (the map's scale) for a key must not look like a parameter change."""
+    scene = scene_of(("ggx",))
+    sh = sh_direct()
+    env = sh.scenes.get(scene)
+    from mitsuba_shsampling.traversal import content_parts
+    content_parts(scene)
+    assert sh.scenes.get(scene) is env
+    assert dr.width(env.pyramid.buffer) > 0
