@@ -8,6 +8,7 @@ shared by every integrator object with the same options; a parameter change
 rebuilds only what it touches; and the plan is logged.
 """
 
+import gc
 import json
 import os
 import subprocess
@@ -192,7 +193,8 @@ def test_an_unreadable_plan_file_is_replaced_with_a_warning(tmp_path):
     assert choice.mode == "estimate"
 
 
-def test_a_measured_plan_is_kept_like_wisdom_and_reused_by_the_next_process(monkeypatch):
+def test_a_measured_plan_is_kept_like_wisdom_and_reused_by_the_next_process(monkeypatch, tmp_path):
+    monkeypatch.setenv("SHSAMPLING_CACHE_DIR", str(tmp_path))  # its wisdom is kept from other tests
     scene = scene_of(("ggx", "diffuse"))
     measured = sh_direct(plan="measure").plan(scene)
     assert measured.mode == "measure" and measured.costs["source"] == "measured in the scene"
@@ -224,12 +226,26 @@ def test_an_unknown_material_or_a_strategy_it_cannot_run_is_an_error_naming_it()
 
 def test_a_second_object_with_the_same_options_shares_the_state_and_the_plan(monkeypatch):
     scene = scene_of()
-    first = sh_direct().plan(scene)
+    first_object = sh_direct()
+    first = first_object.plan(scene)
     built = count_calls(monkeypatch, pyramid_module, "_pyramid_arrays")
     chosen = count_calls(monkeypatch, chooser_module, "choose_strategies")
     second = sh_direct()
     assert second.plan(scene) is first
     assert built == [] and chosen == []
+
+
+def test_the_shared_state_lets_a_scene_go_with_its_last_integrator_object():
+    """A scene kept alive by the plugin would keep its AD graph too, which a later
+    differentiable render on another scene cannot traverse (test_sh_prb's replay test)."""
+    scene = scene_of()
+    before = sys.getrefcount(scene)
+    integrator = sh_direct()
+    integrator.plan(scene)
+    assert sys.getrefcount(scene) > before  # the state holds it while an object lives
+    del integrator
+    gc.collect()
+    assert sys.getrefcount(scene) == before
 
 
 def test_a_bsdf_change_refits_that_bsdf_alone_and_keeps_the_pyramid(monkeypatch):

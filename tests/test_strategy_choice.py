@@ -416,7 +416,10 @@ def test_auto_chooses_before_the_first_pass_and_reports_every_material():
     assert choice.mode == "estimate" and choice.pass_time == {} and choice.costs["product_walk"] > 0
 
 
-def test_a_measured_plan_times_every_strategy_and_prices_the_cosine_tables_apart():
+def test_a_measured_plan_times_every_strategy_and_prices_the_cosine_tables_apart(monkeypatch, tmp_path):
+    # A cache folder of its own: a measured plan of the same scene kept by another test
+    # would be reused as wisdom instead of measured.
+    monkeypatch.setenv("SHSAMPLING_CACHE_DIR", str(tmp_path))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})

@@ -429,3 +429,27 @@ def test_summary_reads_missing_fields_as_unknown_instead_of_failing():
     assert summary["methods"]["direct"]["efficiency_ratio_vs_best_mitsuba_err"] is None
     assert summary["bias"] == "unknown"
     assert "error" in aggregate.summarise_report({"scenes": []})
+
+
+def test_a_saved_results_file_regenerates_the_readme_table_and_a_stale_one_is_caught(first_sweep, tmp_path):
+    _, _, out, _ = first_sweep
+    script = os.path.join(REPO, "scripts", "results_table.py")
+    results = tmp_path / "results" / "tiny.json"
+    subprocess.run([sys.executable, script, os.path.join(out, "aggregate.json"), "--save", str(results),
+                    "--command", "sweep tiny.toml"], capture_output=True, text=True, check=True)
+    saved = json.loads(results.read_text())
+    assert saved["command"] == "sweep tiny.toml" and saved["commit"] and saved["machine"]["cores"]
+    assert len(saved["rows"]) == 4
+    readme = tmp_path / "README.md"
+    readme.write_text("# t\n<!-- table: results/tiny.json -->\n| old |\n<!-- end table -->\nafter\n")
+
+    def sync(flag):
+        return subprocess.run([sys.executable, script, "--readme", str(readme), flag], capture_output=True, text=True)
+
+    stale = sync("--check")
+    assert stale.returncode == 1 and "results/tiny.json" in stale.stdout
+    assert sync("--write").returncode == 0
+    text = readme.read_text()
+    assert "| old |" not in text and text.endswith("<!-- end table -->\nafter\n")
+    assert sum(line.startswith("| sphere_") for line in text.splitlines()) == 4
+    assert sync("--check").returncode == 0

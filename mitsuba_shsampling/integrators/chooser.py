@@ -588,5 +588,7 @@ class StrategyChooser:
         finally:
             self.piloting = False
             sampler.set_sample_count(sample_count)
+            if replay is not render:
+                replay.release()
         self._scene, self._pilots = scene, choice.pilots
         return choice

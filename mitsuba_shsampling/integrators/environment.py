@@ -404,7 +404,10 @@ class SceneCache:
             # Read after the build, which may have sanitised the envmap's data.
             inputs = self._inputs()
             self._key = self._identity(inputs)
-            self._held = [type(value)(value) for value in inputs if dr.detail.collect_indices(value)]
+            # Detached references: a copy of a parameter whose gradient is enabled would be an
+            # AD edge from it, which a later forward-mode render must not traverse.
+            self._held = [dr.detach(value) if dr.is_diff_v(value) else type(value)(value)
+                          for value in inputs if dr.detail.collect_indices(value)]
         return self._env
 
     @staticmethod

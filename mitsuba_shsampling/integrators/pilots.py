@@ -146,8 +146,13 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
     per-scene state's arrays are inputs of the recording (:func:`~mitsuba_shsampling.frozen.held_inputs`),
     so a new table is read by the replay, and so are ``objects`` (the scene, sensor and
     integrator that ``render`` uses). Where recording fails, the passes render traced."""
+    # The recording's closures form a reference cycle inside dr.freeze, which would keep
+    # ``render`` (and through it the integrator, its state and the scene) alive until
+    # Python's next collection: ``replay.release()`` drops both when the pilots are done.
+    target = [render]
+
     def one_pass(seed, spp, objects, inputs):
-        return render(spp, seed)
+        return target[0](spp, seed)
 
     frozen, failed = dr.freeze(one_pass), []
 
@@ -164,6 +169,12 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
         finally:
             if collecting:
                 gc.enable()
+
+    def release():
+        frozen.clear()
+        target.clear()
+
+    replay.release = release
     return replay
 
 

@@ -63,10 +63,11 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         self.options = options = DirectOptions.from_properties(props)
         # Without BSDF samples every environment sample already carries the lane.
         carry_all = options.bsdf_samples > 0
-        self.scenes, self.chooser = shared_planning(
+        self.shared = shared_planning(
             options, (carry_all,), lambda scene: ProductEnvironment(scene, options, carry_all),
             lambda: StrategyChooser(options.emitter_samples, options.bsdf_samples, "direct", options.plan,
                                     options.plan_file))
+        self.scenes, self.chooser = self.shared.scenes, self.shared.chooser
 
     def prepare_scene(self, scene, sensor=0):
         """What :meth:`render` does on the host before it traces a pass: build (or

@@ -55,9 +55,10 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         super().__init__(props)
         self.options = options = PathOptions.from_properties(props)
         # One environment sample and one BSDF sample per vertex.
-        self.scenes, self.chooser = shared_planning(
+        self.shared = shared_planning(
             options, (), lambda scene: ProductEnvironment(scene, options),
             lambda: StrategyChooser(1, 1, "path", options.plan, options.plan_file))
+        self.scenes, self.chooser = self.shared.scenes, self.shared.chooser
 
     def prepare_scene(self, scene, sensor=0):
         """The host-side work before a pass: state and choice (see ``sh_direct``'s)."""

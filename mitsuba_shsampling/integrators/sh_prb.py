@@ -91,8 +91,9 @@ class SHPRBIntegrator(RBIntegrator):
                 return ProductEnvironment(scene, options)
 
         # One environment sample and one BSDF sample per vertex, as in sh_path.
-        self.scenes, self.chooser = shared_planning(
+        self.shared = shared_planning(
             options, (), build, lambda: StrategyChooser(1, 1, "path", options.plan, options.plan_file))
+        self.scenes, self.chooser = self.shared.scenes, self.shared.chooser
         self._state, self._renders_since_build = None, 0
 
     # The per-scene state is built on the host before a pass is traced. A primal

@@ -4,13 +4,21 @@ A user who makes a second integrator object for a scene (a notebook cell run aga
 a comparison script, ``mi.load_dict`` inside a loop) pays no second set-up: objects
 of one plugin with equal options get one :class:`~.environment.SceneCache` and one
 :class:`~.chooser.StrategyChooser`, so the state built and the plan made for a scene
-by one of them are the other's. The table keeps the last :data:`SHARED_ENTRIES`
-option sets of the process.
+by one of them are the other's.
+
+The table holds its entries weakly: an entry lives as long as one of its objects
+does. A state holds its scene's objects (the emitter, the BSDFs), so a table that
+kept it would keep a scene alive after the user dropped it, and with it the scene's
+AD graph; a virtual call of a later differentiable render reaches every live
+emitter and BSDF and would try to traverse that graph (Dr.Jit refuses: the edges lie
+outside the render's ``isolate_grad`` scope). Builds that outlive every object (the
+pyramid, the lobe fits, the cosine tables) are kept by their content instead
+(:mod:`~mitsuba_shsampling.build_cache`).
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
+import weakref
 from typing import Callable
 
 import mitsuba as mi
@@ -18,24 +26,28 @@ import mitsuba as mi
 from .chooser import StrategyChooser
 from .environment import SceneCache
 
-SHARED_ENTRIES = 8
-"""Option sets whose state is kept (the least recently used goes first)."""
+class SharedPlanning:
+    """The scene cache and the planner of one option set; every integrator object of
+    that set holds it (which keeps it in the table)."""
 
-_shared: "OrderedDict[tuple, tuple[SceneCache, StrategyChooser]]" = OrderedDict()
+    __slots__ = ("scenes", "chooser", "__weakref__")
+
+    def __init__(self, scenes: SceneCache, chooser: StrategyChooser):
+        self.scenes, self.chooser = scenes, chooser
+
+
+_shared: "weakref.WeakValueDictionary[tuple, SharedPlanning]" = weakref.WeakValueDictionary()
 
 
 def shared_planning(options, extra: tuple, build: Callable[[mi.Scene], object],
-                    chooser: Callable[[], StrategyChooser]) -> tuple[SceneCache, StrategyChooser]:
-    """The (scene cache, planner) of a plugin with ``options`` (a frozen options dataclass;
-    ``extra``: anything else its state depends on), made with ``build`` and ``chooser``
-    the first time."""
+                    chooser: Callable[[], StrategyChooser]) -> SharedPlanning:
+    """The shared scene cache and planner of a plugin with ``options`` (a frozen options
+    dataclass; ``extra``: anything else its state depends on), made with ``build`` and
+    ``chooser`` where no live object has them. The caller keeps the returned object."""
     key = (type(options), options, extra, mi.variant())
     entry = _shared.get(key)
     if entry is None:
-        entry = _shared[key] = (SceneCache(build), chooser())
-    _shared.move_to_end(key)
-    while len(_shared) > SHARED_ENTRIES:
-        _shared.popitem(last=False)
+        entry = _shared[key] = SharedPlanning(SceneCache(build), chooser())
     return entry
 
 
