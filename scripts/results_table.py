@@ -6,6 +6,12 @@
     python scripts/results_table.py sweep_out/aggregate.json --family path   # sh_path against path
     python scripts/results_table.py sweep_out/aggregate.json --choices       # the chooser's predictions
 
+    # Results as data: keep a sweep's rows (with the command, commit and machine) in results/,
+    # and regenerate the README's tables from them (a test runs --check).
+    python scripts/results_table.py sweep_out/aggregate.json --save results/realistic_direct.json \
+        --command "python -m mitsuba_shsampling sweep sweeps/realistic_direct.toml --out sweep_out"
+    python scripts/results_table.py --readme README.md --check     # or --write
+
 For every scene x sampler, the project's plugin at its defaults (``sh_direct``, or ``sh_path``
 with ``--family path``) is set against the *best* of Mitsuba's own strategies of that family in
 the same run (the set of ``mitsuba_shsampling.report.methods.mitsuba_strategies``, as in the
@@ -25,8 +31,14 @@ gain and the measured equal-sample error ratio there.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import os
+import platform
+import re
+import statistics
+import subprocess
+import sys
 
 from mitsuba_shsampling.report.methods import DEFAULT_PLUGIN_METHOD, DIRECT, MULTI_BOUNCE, mitsuba_strategies
 from mitsuba_shsampling.report.schema import Report, load_report
@@ -36,11 +48,26 @@ from mitsuba_shsampling.sweep.aggregate import KIND as SWEEP_AGGREGATE
 #: Mitsuba's plain strategy of each family, the "/ direct" (or "/ path") columns.
 BASELINE = {DIRECT: "direct", MULTI_BOUNCE: "path"}
 
+#: Mitsuba's best single configuration of each family for a one-shot render (the issue's
+#: "direct + mis_compensation"), the "one 256-spp render" column.
+ONE_SHOT_BASELINE = {DIRECT: "direct_misc", MULTI_BOUNCE: "path"}
+
+ONE_SHOT_SPP = 256
+"""Samples per pixel of the one-shot render the README prices, set-up and compilation included."""
+
+RESULTS_KIND = "mitsuba_shsampling.results"
+"""The ``kind`` of a committed results file (``--save``): rows, command, commit, machine."""
+
+README_TABLE = re.compile(r"(<!-- table: (?P<path>[^ ]+) -->\n)(?P<body>.*?)(<!-- end table -->)", re.S)
+"""A README table regenerated from a results file: the marker names the file (README-relative)."""
+
 
 def reports(path: str):
     """The compare reports a file holds: a report.json itself, or each finished cell of a sweep."""
     with open(path) as f:
         data = json.load(f)
+    if data.get("kind") == RESULTS_KIND:
+        raise ValueError(f"{path} holds table rows, not reports: pass it to --readme or read its 'rows'")
     if data.get("kind") != SWEEP_AGGREGATE:
         yield load_report(data)
         return
@@ -76,6 +103,7 @@ def rows(report: Report | dict, family: str):
             timed_ratio = (ratio_with_interval("efficiency", timed[sh_method], timed[best_timed])
                            if best_timed and sh_method in timed else (None, None, None))
             _, eff_low, eff_high = ratio_with_interval("efficiency", ours, theirs[best_eff])
+            one_shot_base = methods.get(ONE_SHOT_BASELINE[family])
             yield {
                 "map": envmap_name(report), "scene": scene.scene, "sampler": run.sampler,
                 "family": family, "method": sh_method,
@@ -91,7 +119,33 @@ def rows(report: Report | dict, family: str):
                                         if base and base.tail.max_pixel else None),
                 "bias_ok": not ours.bias.flagged,
                 "tail_ok": not ours.tail_worse_than_baseline,
+                "setup_s": methods[sh_method].setup_time_s,
+                "one_shot_vs_baseline": one_shot_ratio(methods[sh_method], one_shot_base),
+                "one_shot_baseline": ONE_SHOT_BASELINE[family],
             }
+
+
+def one_shot_seconds(entry) -> float | None:
+    """Wall time of one :data:`ONE_SHOT_SPP` render by ``entry`` in a fresh process: its set-up,
+    its first pass's compilation, and the warm passes' time per sample x the samples."""
+    if entry is None or entry.equal_spp.time_s is None:
+        return None
+    per_sample = entry.equal_spp.time_s / entry.equal_spp.spp
+    return (entry.setup_time_s or 0.0) + (entry.compile_time_s or 0.0) + ONE_SHOT_SPP * per_sample
+
+
+def one_shot_ratio(ours, theirs) -> float | None:
+    """Efficiency of one :data:`ONE_SHOT_SPP` render, ours over theirs, set-up and compilation
+    included. Derived, not rendered: the expected MSE at that spp is the equal-sample passes'
+    scaled as 1/spp (both estimators are unbiased), so the MSE ratio is the equal-sample one
+    and the times are :func:`one_shot_seconds`."""
+    if theirs is None:
+        return None
+    t_ours, t_theirs = one_shot_seconds(ours), one_shot_seconds(theirs)
+    mse_ours, mse_theirs = ours.equal_spp.error.mse, theirs.equal_spp.error.mse
+    if not (t_ours and t_theirs and mse_ours and mse_theirs):
+        return None
+    return (mse_theirs * t_theirs) / (mse_ours * t_ours)
 
 
 def choice_rows(report: Report | dict, family: str):
@@ -139,15 +193,96 @@ def fmt(x, digits=2):
     return "n/a" if x is None else f"{x:.{digits}f}"
 
 
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             cwd=os.path.dirname(os.path.abspath(__file__)), check=True)
+        return out.stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def save_results(path: str, table: list[dict], family: str, command: str, sources: list[str]) -> None:
+    """Write ``table`` as a committed results file, with what made it."""
+    record = {"kind": RESULTS_KIND, "family": family, "command": command, "commit": git_commit(),
+              "date": datetime.date.today().isoformat(), "sources": sources,
+              "machine": {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+                          "system": platform.platform(), "python": sys.version.split()[0]},
+              "rows": table}
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(record, f, indent=1)
+        f.write("\n")
+
+
+def readme_table(results: dict) -> str:
+    """The README's compact table of a results file: the equal-time renders decide."""
+    family = results["family"]
+    base = ONE_SHOT_BASELINE[family]
+    lines = [f"| scene | map | equal time: efficiency / best Mitsuba [90 %] (which) "
+             f"| paired equal-sample estimate [90 %] | one {ONE_SHOT_SPP}-spp render / `{base}`, set-up included "
+             f"| set-up (s) | bias, tails ok |",
+             "|---|---|---|---|---|---|---|"]
+    for r in results["rows"]:
+        ok = "yes" if r["bias_ok"] and r["tail_ok"] else ("bias NO" if not r["bias_ok"] else "tails NO")
+        lines.append(f"| {r['scene']} | {r['map']} | **{fmt(r['timed_eff_vs_best'])}** "
+                     f"[{fmt(r['timed_low'])}, {fmt(r['timed_high'])}] (`{r['best_timed']}`) "
+                     f"| {fmt(r['eff_vs_best'])} [{fmt(r['eff_low'])}, {fmt(r['eff_high'])}] "
+                     f"| {fmt(r.get('one_shot_vs_baseline'))} | {fmt(r.get('setup_s'), 1)} | {ok} |")
+    timed = sorted(r["timed_eff_vs_best"] for r in results["rows"] if r["timed_eff_vs_best"] is not None)
+    if timed:
+        lines.append("")
+        lines.append(f"Equal time: {fmt(timed[0])}-{fmt(timed[-1])}x, median {fmt(statistics.median(timed))} "
+                     f"({len(timed)} cells). `{results['command']}` at `{results['commit']}`, "
+                     f"{results['date']}, {results['machine']['cores']} cores.")
+    return "\n".join(lines) + "\n"
+
+
+def sync_readme(readme: str, write: bool) -> list[str]:
+    """Regenerate every marked table of ``readme`` from its results file; the paths of the
+    tables that differ (written back where ``write``)."""
+    with open(readme) as f:
+        text = f.read()
+    stale = []
+
+    def regenerate(match):
+        path = os.path.join(os.path.dirname(os.path.abspath(readme)), match["path"])
+        with open(path) as f:
+            results = json.load(f)
+        table = readme_table(results)
+        if table != match["body"]:
+            stale.append(match["path"])
+        return match.group(1) + table + match.group(4)
+
+    updated = README_TABLE.sub(regenerate, text)
+    if write and updated != text:
+        with open(readme, "w") as f:
+            f.write(updated)
+    return stale
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("reports", nargs="+")
+    parser.add_argument("reports", nargs="*")
     parser.add_argument("--family", choices=(DIRECT, MULTI_BOUNCE), default=DIRECT,
                         help="direct: sh_direct against Mitsuba's direct strategies; path: sh_path against path")
     parser.add_argument("--json", help="also write the rows as JSON")
     parser.add_argument("--choices", action="store_true",
                         help="the chooser's predictions against the measured ratios, per cell and material")
+    parser.add_argument("--save", help="write the rows as a committed results file (with --command)")
+    parser.add_argument("--command", default="", help="the command that made the reports (for --save)")
+    parser.add_argument("--readme", help="a Markdown file whose marked tables come from results files")
+    action = parser.add_mutually_exclusive_group()
+    action.add_argument("--check", action="store_true", help="with --readme: exit 1 where a table is stale")
+    action.add_argument("--write", action="store_true", help="with --readme: rewrite the stale tables")
     args = parser.parse_args()
+    if args.readme:
+        stale = sync_readme(args.readme, write=args.write)
+        for path in stale:
+            print(f"{args.readme}: the table of {path} {'rewritten' if args.write else 'is stale'}")
+        return 1 if stale and args.check else 0
+    if not args.reports:
+        parser.error("name report.json or aggregate.json files, or --readme")
     if args.choices:
         table = [r for path in args.reports for report in reports(path) for r in choice_rows(report, args.family)]
         print_choices(table)
@@ -172,7 +307,10 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(table, f, indent=1)
+    if args.save:
+        save_results(args.save, table, args.family, args.command, args.reports)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
