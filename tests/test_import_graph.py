@@ -93,3 +93,13 @@ def test_the_package_has_no_import_cycle():
     graph = {name: imported_modules(name, path, modules) for name, path in modules.items()}
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_no_function_of_the_integrators_is_longer_than_80_lines():
+    """Long functions there were copies that drifted apart (one path loop serves sh_path and sh_prb)."""
+    long = []
+    for path in sorted((ROOT / "integrators").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= 80:
+                long.append(f"{path.name}:{node.name} ({node.end_lineno - node.lineno + 1} lines)")
+    assert long == []

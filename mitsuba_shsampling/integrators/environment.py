@@ -66,8 +66,7 @@ class ProductEnvironment:
         self.scene = scene
         self.emitter = scene.environment()
         self.emitter_id = emitter_id(self.emitter)
-        self.pyramid = self.lobes = self.warp = self.warp_plain = None
-        self.env_directions = self.env_plain = None
+        self.pyramid = self.lobes = self.warp = self.warp_plain = self.env_directions = self.env_plain = None
         self.strategies = self.choice = None
         self.strategy_option = options.default_strategy
         #: The plugin's name, for messages; what a stored plan must match (:mod:`.plan_file`).
@@ -320,7 +319,7 @@ class ProductEnvironment:
         return dr.select(self.is_environment(emitter), strategy_pdf, emitter_pdf)
 
     def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, smooth, carries_all,
-                    frac_e, frac_b):
+                    frac_e, frac_b, differentiable: bool = False):
         """One sample of the environment (BSDF value x radiance / pdf) in the ``smooth``
         lanes, with the lane's strategy (:meth:`sample_environment`).
 
@@ -329,7 +328,8 @@ class ProductEnvironment:
         power-heuristic weighted against BSDF sampling with the strategies'
         sample-count fractions. ``carries_all`` may be the Python value True
         (inside a branch that only such lanes enter): then only the
-        uncompensated walks are traced."""
+        uncompensated walks are traced. ``differentiable``: see
+        :func:`~.estimators.environment_sample`."""
         if not self.active:
             return mi.Spectrum(0.0)
         smooth = mi.Bool(smooth)
@@ -338,23 +338,25 @@ class ProductEnvironment:
                               true_fn=lambda c, v: self.sample_environment(c, v, use_product, carries_all),
                               false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
         if carries_all is True:  # a lane known to carry all: no MIS weight to trace
-            return environment_sample(scene, si, bsdf, ctx, d, pdf_e, smooth, lambda _: frac_e)
+            return environment_sample(scene, si, bsdf, ctx, d, pdf_e, smooth, lambda _: frac_e, differentiable)
         return environment_sample(
             scene, si, bsdf, ctx, d, pdf_e, smooth,
-            lambda bsdf_pdf: dr.select(carries_all, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)))
+            lambda bsdf_pdf: dr.select(carries_all, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)),
+            differentiable)
 
-    def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False):
+    def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False,
+                    differentiable: bool = False):
         """One sample of Mitsuba's emitter sampling, without the environment's
         share where this object samples it (:meth:`product_nee`); not traced at all
         when no lane can use it. In ``carries_all`` lanes no BSDF sample runs, so
-        its weight is 1."""
+        its weight is 1. ``differentiable``: see :func:`~.estimators.mitsuba_emitter_sample`."""
         if not self.needs_emitter_sampling:
             return mi.Spectrum(0.0)
         def left_out(emitter):
             return self.is_environment(emitter) if self.active else mi.Bool(False)
 
         return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
-                                      frac_e, frac_b, weight_one=carries_all)
+                                      frac_e, frac_b, weight_one=carries_all, differentiable=differentiable)
 
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""

@@ -76,23 +76,29 @@ def first_hit(scene: mi.Scene, ray, active, hide_emitters: bool) -> FirstHit:
     return FirstHit(emitted, si, bsdf, mi.BSDFContext(), active, smooth)
 
 
-def environment_sample(scene, si, bsdf, ctx, d: mi.Vector3f, pdf: mi.Float, active, weight) -> mi.Spectrum:
+def environment_sample(scene, si, bsdf, ctx, d: mi.Vector3f, pdf: mi.Float, active, weight,
+                       differentiable: bool = False) -> mi.Spectrum:
     """The value of one environment sample in direction ``d`` drawn with density ``pdf``:
     BSDF value x radiance x visibility x ``weight(bsdf_pdf)`` / pdf, 0 outside ``active``
     and where ``pdf`` is 0. ``weight`` maps the BSDF's pdf of ``d`` to the sample's MIS
-    weight. Every environment strategy of every integrator here ends in this."""
+    weight. Every environment strategy of every integrator here ends in this.
+
+    ``differentiable``: the BSDF value and the radiance carry derivatives (``sh_prb``'s
+    replay); the direction, its pdf and the MIS weight never do (a sampling decision
+    has no counterpart in the detached weight of the BSDF sample that hits the map)."""
     act = mi.Bool(active) & (pdf > 0)
-    bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
-    # Where the BSDF reflects nothing (below an opaque surface's horizon) the sample is 0
-    # whatever the visibility: no shadow ray. Mitsuba's `direct` traces it first.
-    act &= dr.any(bsdf_val != 0.0)
-    act &= ~scene.ray_test(si.spawn_ray(d), act)
-    radiance = scene.environment().eval(environment_ray_target(d), act)
-    return dr.select(act, bsdf_val * radiance * (weight(bsdf_pdf) / pdf), 0.0)
+    with dr.resume_grad(when=differentiable):
+        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
+        # Where the BSDF reflects nothing (below an opaque surface's horizon) the sample is 0
+        # whatever the visibility: no shadow ray. Mitsuba's `direct` traces it first.
+        act &= dr.any(bsdf_val != 0.0)
+        act &= ~scene.ray_test(si.spawn_ray(d), act)
+        radiance = scene.environment().eval(environment_ray_target(d), act)
+        return dr.select(act, bsdf_val * radiance * (weight(dr.detach(bsdf_pdf)) / pdf), 0.0)
 
 
 def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, left_out, frac_e, frac_b,
-                           weight_one=False) -> mi.Spectrum:
+                           weight_one=False, differentiable: bool = False) -> mi.Spectrum:
     """One sample of Mitsuba's emitter sampling, power-heuristic weighted
     against BSDF sampling (weight 1 for Dirac emitters and ``weight_one``
     lanes, which run no BSDF sample), in the ``smooth`` lanes.
@@ -100,12 +106,18 @@ def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, lef
     ``left_out(emitter) -> mi.Bool``: per lane, the sampled emitter belongs
     to another strategy of the lane (the environment, when a product or oracle
     strategy samples it), so this sample contributes nothing there.
-    """
+
+    ``differentiable``: as ``prb``, the sample is drawn without derivatives and the
+    emitter's value evaluated again with them (and the BSDF's value with them)."""
     ds, em_weight = scene.sample_emitter_direction(si, sample, True, smooth)
     act = smooth & (ds.pdf != 0) & ~left_out(ds.emitter)
-    bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
-    weight = dr.select(ds.delta | weight_one, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
-    return dr.select(act, bsdf_val * em_weight * weight, 0.0)
+    with dr.resume_grad(when=differentiable):
+        if differentiable:
+            em_value = scene.eval_emitter_direction(si, ds, act)
+            em_weight = dr.replace_grad(em_weight, em_value * dr.select(ds.pdf != 0, dr.rcp(ds.pdf), 0.0))
+        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), act)
+        weight = dr.select(ds.delta | weight_one, 1.0, mis_weight(ds.pdf * frac_e, dr.detach(bsdf_pdf) * frac_b))
+        return dr.select(act, bsdf_val * em_weight * weight, 0.0)
 
 
 def has_emitting_shapes(scene: mi.Scene) -> bool:

@@ -9,7 +9,7 @@ from .chooser import StrategyChooser
 from .environment import ProductEnvironment
 from .estimators import bsdf_sample_of_emitters, dirac_sample_of_emitters, first_hit
 from .options import DirectOptions, document_parameters
-from .sharing import plan, shared_planning
+from .sharing import plan, planned_render, shared_planning
 
 
 @document_parameters(DirectOptions)
@@ -41,8 +41,10 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     and scenes without an ``envmap`` use Mitsuba's own sampling and build
     nothing. With ``bsdf_samples`` 0, unlike :monosp:`direct`, the Dirac
     components of a BSDF (glass, a plastic's coating, a mirror) still get one
-    sample of their own, so nothing the emitters light is left black. After a render, ``integrator.choice(scene)`` tells what was chosen. The 2D sample of each product sample comes from the
-    scene's sampler (``next_2d``), so stratification carries through the warp.
+    sample of their own, so nothing the emitters light is left black.
+    ``integrator.plan(scene)`` makes the plan before the first render (which makes
+    it otherwise) and returns it; ``integrator.choice(scene)`` returns it once made.
+    The 2D sample of each product sample comes from the scene's sampler (``next_2d``), so stratification carries through the warp.
 
     .. tabs::
         .. code-tab:: xml
@@ -77,11 +79,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         which runs no Python."""
         return self.chooser.prepare(self, self.scenes.get(scene), scene, sensor)
 
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        if not self.chooser.piloting:  # a pilot pass (StrategyChooser.piloting) renders as configured
-            self.prepare_scene(scene, sensor)
-        return super().render(scene, sensor, seed, spp, develop, evaluate)
-
+    render = planned_render(mi.SamplingIntegrator)
     plan = plan
 
     def choice(self, scene):

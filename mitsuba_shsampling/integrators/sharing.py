@@ -66,3 +66,15 @@ def plan(self, scene: mi.Scene, sensor=0):
     Mitsuba integrator class takes one base)."""
     self.prepare_scene(scene, sensor)
     return self.choice(scene)
+
+
+def planned_render(base) -> Callable:
+    """The ``render`` method of a plugin whose class derives from ``base``: it plans (the
+    plugin's ``prepare_scene``) before it renders as ``base`` does. A pilot pass of the
+    planner (``StrategyChooser.piloting``) renders as the plugin is set, without planning."""
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not self.chooser.piloting:
+            self.prepare_scene(scene, sensor)
+        return base.render(self, scene, sensor, seed, spp, develop, evaluate)
+
+    return render
