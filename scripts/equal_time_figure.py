@@ -39,6 +39,13 @@ def panels(folder: str, family: str = DIRECT):
     ours = methods[ours_name].equal_time
     ratio, low, high = ratio_with_interval("efficiency", ours, timed[best])
     x, y, size = run.crop
+    # Twice the report's window, about its centre (kept inside the film): more of the scene
+    # around the noisiest spot.
+    height, width = run.film_size[1], run.film_size[0]
+    size2 = min(2 * size, width, height)
+    x = int(min(max(x + size // 2 - size2 // 2, 0), width - size2))
+    y = int(min(max(y + size // 2 - size2 // 2, 0), height - size2))
+    size = size2
 
     def cut(png: str) -> np.ndarray:
         return plt.imread(os.path.join(folder, png))[y:y + size, x:x + size, :3]
@@ -58,15 +65,14 @@ def main() -> int:
     parser.add_argument("-o", "--out", default="docs/equal_time_crops.png")
     args = parser.parse_args()
     rows = [panels(folder) for folder in args.reports]
-    fig, axes = plt.subplots(len(rows), 3, figsize=(9.6, 3.55 * len(rows)), squeeze=False)
-    for (title, row), ax_row in zip(rows, axes):
-        for (caption, image), ax in zip(row, ax_row):
+    fig = plt.figure(figsize=(10.5, 3.9 * len(rows)), layout="constrained")
+    for (title, row), sub in zip(rows, np.atleast_1d(fig.subfigures(len(rows), 1))):
+        sub.suptitle(title, fontsize=10.5, weight="bold")
+        for (caption, image), ax in zip(row, sub.subplots(1, 3)):
             ax.imshow(image, interpolation="nearest")
-            ax.set_title(caption, fontsize=8.5)
+            ax.set_title(caption, fontsize=9)
             ax.set_xticks([])
             ax.set_yticks([])
-        ax_row[1].text(0.5, 1.17, title, transform=ax_row[1].transAxes, ha="center", fontsize=10, weight="bold")
-    fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(f"wrote {args.out}")

@@ -253,7 +253,9 @@ def test_transmissive_lobes_fall_back_to_the_environment_alone_with_a_warning(wr
 # ------------------------------------------------------------ end to end
 
 WRAPPED = {"bumpmap": BSDFS["bumpmap"], "normalmap": BSDFS["normalmap"], "ggx": MATERIALS["ggx"],
-           "anisotropic": BSDFS["anisotropic"], "roughdielectric": BSDFS["roughdielectric"]}
+           "anisotropic": BSDFS["anisotropic"], "roughdielectric": BSDFS["roughdielectric"],
+           # A cut-out: partly transmissive (null), so no product lobe; the environment alone.
+           "mask": {"type": "mask", "opacity": 0.6, "bsdf": {"type": "roughconductor", "alpha": 0.15}}}
 
 
 @pytest.mark.parametrize("integrator", [
@@ -264,7 +266,7 @@ WRAPPED = {"bumpmap": BSDFS["bumpmap"], "normalmap": BSDFS["normalmap"], "ggx": 
 ])
 def test_wrapped_anisotropic_and_transmissive_lobes_are_unbiased(integrator):
     """bumpmap and normalmap (product-sampled about the perturbed normal), an
-    anisotropic lobe (isotropic proxy) and a transmissive one (the environment
+    anisotropic lobe (isotropic proxy), a transmissive one and a mask (the environment
     alone) beside a product-sampled GGX."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
