@@ -523,4 +523,7 @@ def test_the_plugins_set_up_is_reported_apart_from_the_kernels_compilation(plain
     assert methods["sh_direct"]["setup_time_s"] > 0
     assert all(m["compile_time_s"] >= 0 for m in methods.values())
     assert "setup_time_s" in (plain_scene / "out" / "metrics.csv").read_text().splitlines()[0]
-    assert "<th>set-up (s)</th><th>compile (s)</th>" in (plain_scene / "out" / "index.html").read_text()
+    page = (plain_scene / "out" / "index.html").read_text()
+    assert "<th>set-up (s)</th><th>compile (s)</th>" in page
+    # The page says which of its two equal-time estimates decides, and when the other holds.
+    assert re.search(r'id="deciding-estimate".*the renders at equal time.*1/spp.*fixed overhead', page)

@@ -168,7 +168,11 @@ def _verdict_section(report: Report) -> str:
               f"1/(MSE x time) at equal time (above 1: the first is better), from the renders at equal "
               f"time and from the equal-sample passes (the same quantity: at one seed and spp the noise "
               f"both methods draw alike cancels there); in brackets the "
-              f"{metrics.INTERVAL:.0%} paired bootstrap interval over passes.</p>")
+              f"{metrics.INTERVAL:.0%} paired bootstrap interval over passes.</p>"
+              f'<p id="deciding-estimate"><b>Which estimate decides:</b> at equal time, the renders at '
+              f"equal time. The estimate from the equal-sample passes is shown beside them; it holds "
+              f"where the MSE falls as 1/spp (the independent sampler) and a pass's time is proportional "
+              f"to its samples (no fixed overhead per pass), and a caveat says when the two disagree.</p>")
     if others:
         legend += ('<p>The project\'s other configurations, each against the same best Mitsuba strategy:</p>'
                    f'<table id="verdict-others">{head.replace("<th>caveats</th>", "")}{"".join(others)}</table>')
