@@ -248,31 +248,29 @@ def test_the_shared_state_lets_a_scene_go_with_its_last_integrator_object():
     assert sys.getrefcount(scene) == before
 
 
-def test_a_bsdf_change_refits_that_bsdf_alone_and_keeps_the_pyramid(monkeypatch):
-    """The state is rebuilt, but each build it reads is looked up by its inputs' content."""
+def planned_then_changed(monkeypatch, key, value):
+    """Plan a scene, then set its parameter ``key`` to ``value(old)`` and plan again:
+    (the lobe fits, the pyramid builds) that the second plan ran."""
     scene = scene_of()
     sh = sh_direct()
     sh.plan(scene)
     fitted = count_calls(monkeypatch, scene_lobes.SceneLobes, "_fit_bsdf_now")
     built = count_calls(monkeypatch, pyramid_module, "_pyramid_arrays")
     params = mi.traverse(scene)
-    params["ggx.bsdf.alpha.value"] = 0.35
+    params[key] = value(params[key])
     params.update()
     assert sh.plan(scene) is not None
+    return fitted, built
+
+
+def test_a_bsdf_change_refits_that_bsdf_alone_and_keeps_the_pyramid(monkeypatch):
+    """The state is rebuilt, but each build it reads is looked up by its inputs' content."""
+    fitted, built = planned_then_changed(monkeypatch, "ggx.bsdf.alpha.value", lambda _: 0.35)
     assert len(fitted) == 1 and built == []
 
 
 def test_an_envmap_change_rebuilds_the_pyramid_alone(monkeypatch):
-    scene = scene_of()
-    sh = sh_direct()
-    sh.plan(scene)
-    fitted = count_calls(monkeypatch, scene_lobes.SceneLobes, "_fit_bsdf_now")
-    built = count_calls(monkeypatch, pyramid_module, "_pyramid_arrays")
-    params = mi.traverse(scene)
-    data = params["env.data"]
-    params["env.data"] = data * 0.5 + 0.01
-    params.update()
-    sh.plan(scene)
+    fitted, built = planned_then_changed(monkeypatch, "env.data", lambda data: data * 0.5 + 0.01)
     assert len(built) >= 1 and fitted == []
 
 
