@@ -277,6 +277,24 @@ def test_wrapped_anisotropic_and_transmissive_lobes_are_unbiased(integrator):
     assert_unbiased(scene, sh, mi.load_dict({"type": "path", "max_depth": depth}))
 
 
+# The rest of Mitsuba's BSDF plugins a user can write without data files: smooth plastic and
+# conductor (Dirac only: no environment sample), the polarised plastic (its RGB form), the
+# thin principled BSDF and the thin dielectric (transmissive: the environment alone).
+OTHER_BSDFS = {"pplastic": {"type": "pplastic", "alpha": 0.15}, "plastic": {"type": "plastic"},
+               "conductor": {"type": "conductor"}, "principledthin": {"type": "principledthin", "roughness": 0.3},
+               "thindielectric": {"type": "thindielectric"}, "ggx": MATERIALS["ggx"]}
+
+
+@pytest.mark.parametrize("integrator", [{"type": "sh_direct", "max_bands": 5},
+                                        {"type": "sh_path", "max_bands": 5, "max_depth": 3}])
+def test_the_other_bsdf_plugins_are_unbiased(integrator):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = make_scene(materials=OTHER_BSDFS)
+    depth = integrator.get("max_depth", 2)
+    assert_unbiased(scene, mi.load_dict(integrator), mi.load_dict({"type": "path", "max_depth": depth}))
+
+
 def test_product_only_sampling_is_unbiased_on_a_hard_sun_map():
     with pytest.warns(UserWarning, match="mis_compensation' is switched off"):
         sh = mi.load_dict({"type": "sh_direct", "max_bands": 5, "emitter_samples": 2, "bsdf_samples": 0})
