@@ -39,7 +39,53 @@ from .options import OptionError, ProductOptions
 from .strategy import AUTO, Strategy, StrategyTable, strategy_named
 
 
-class ProductEnvironment:
+class EnvironmentState:
+    """What every per-scene environment state has (:class:`ProductEnvironment`,
+    the oracle's): the scene's environment emitter and its registry id, why this
+    package does not sample it (``reason``, empty where it does), and Mitsuba's
+    emitter sampling of what it leaves to Mitsuba.
+
+    ``needs_emitter_sampling`` (bool): Mitsuba's emitter sampling has work to do
+    (emitters besides the environment, or the environment where this package does
+    not sample it); subclasses set it once they know."""
+
+    def __init__(self, scene: mi.Scene):
+        self.emitter = scene.environment()
+        self.emitter_id = emitter_id(self.emitter)
+        self.other_emitters = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
+        self.needs_emitter_sampling = True
+        if self.emitter is None:
+            self.reason = "the scene has no environment emitter"
+        elif self.emitter.class_name() != "EnvironmentMapEmitter":
+            self.reason = (f"the environment emitter is '{self.emitter.class_name()}', not an 'envmap'; "
+                           "it keeps Mitsuba's own sampling")
+        else:
+            self.reason = ""
+
+    def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
+        """Per-lane test: is ``emitter`` the environment map."""
+        return is_emitter(emitter, self.emitter_id)
+
+    def mitsuba_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, sampled_here,
+                    weight_one=False, differentiable: bool = False) -> mi.Spectrum:
+        """One sample of Mitsuba's emitter sampling in the ``smooth`` lanes, without the
+        environment where this package samples it (``sampled_here``: a per-lane mask, or
+        True / False for every lane); not traced at all when no lane can use it. ``weight_one`` lanes run no
+        BSDF sample (weight 1); ``differentiable``: see
+        :func:`~.estimators.mitsuba_emitter_sample`."""
+        if not self.needs_emitter_sampling:
+            return mi.Spectrum(0.0)
+
+        def left_out(emitter):
+            if sampled_here is False or sampled_here is True:  # every lane alike
+                return self.is_environment(emitter) if sampled_here else mi.Bool(False)
+            return sampled_here & self.is_environment(emitter)
+
+        return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
+                                      frac_e, frac_b, weight_one=weight_one, differentiable=differentiable)
+
+
+class ProductEnvironment(EnvironmentState):
     """Environment sampling for one scene, with a strategy per material.
 
     Built from the plugin's checked ``options`` (``max_bands``, ``sh_depth``,
@@ -63,9 +109,8 @@ class ProductEnvironment:
 
     def __init__(self, scene: mi.Scene, options: ProductOptions, carry_all: bool = False):
         start = time.perf_counter()
+        super().__init__(scene)
         self.scene = scene
-        self.emitter = scene.environment()
-        self.emitter_id = emitter_id(self.emitter)
         self.pyramid = self.lobes = self.warp = self.warp_plain = self.env_directions = self.env_plain = None
         self.strategies = self.choice = None
         self.strategy_option = options.default_strategy
@@ -85,15 +130,9 @@ class ProductEnvironment:
         #: chooser's pilot passes: :func:`~.chooser.measure_pass_costs`).
         self.pilot_walks = False
         self.active = False
-        self.needs_emitter_sampling = True
-        other_emitters = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
-        if self.emitter is None:
-            self.reason = "the scene has no environment emitter"
-            return
-        if self.emitter.class_name() != "EnvironmentMapEmitter":
-            self.reason = (f"the environment emitter is '{self.emitter.class_name()}', not an 'envmap'; "
-                           "it keeps Mitsuba's own sampling")
-            warnings.warn(f"mitsuba_shsampling: {self.reason}")
+        if self.reason:
+            if self.emitter is not None:  # an environment of another kind: say so once
+                warnings.warn(f"mitsuba_shsampling: {self.reason}")
             return
         self.lobes = SceneLobes(scene, max_bands=options.max_bands)
         if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
@@ -139,7 +178,7 @@ class ProductEnvironment:
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it: every
         # smooth lane samples the environment through this object.
-        self.needs_emitter_sampling = bool(other_emitters)
+        self.needs_emitter_sampling = bool(self.other_emitters)
         self.build_seconds = time.perf_counter() - start
 
     def _resolve_named(self, named: dict[str, Strategy]) -> dict[int, Strategy]:
@@ -347,20 +386,11 @@ class ProductEnvironment:
     def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False,
                     differentiable: bool = False):
         """One sample of Mitsuba's emitter sampling, without the environment's
-        share where this object samples it (:meth:`product_nee`); not traced at all
-        when no lane can use it. In ``carries_all`` lanes no BSDF sample runs, so
-        its weight is 1. ``differentiable``: see :func:`~.estimators.mitsuba_emitter_sample`."""
-        if not self.needs_emitter_sampling:
-            return mi.Spectrum(0.0)
-        def left_out(emitter):
-            return self.is_environment(emitter) if self.active else mi.Bool(False)
-
-        return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
-                                      frac_e, frac_b, weight_one=carries_all, differentiable=differentiable)
-
-    def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
-        """Per-lane test: is ``emitter`` the environment map."""
-        return is_emitter(emitter, self.emitter_id)
+        share where this object samples it (:meth:`product_nee`): :meth:`mitsuba_nee`.
+        In ``carries_all`` lanes no BSDF sample runs, so its weight is 1."""
+        return self.mitsuba_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b,
+                                self.active, weight_one=carries_all,
+                                differentiable=differentiable)
 
 
 class LaneLobe(NamedTuple):

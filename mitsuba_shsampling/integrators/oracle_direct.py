@@ -8,9 +8,9 @@ import mitsuba as mi
 from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid
 from ..lobes.fit import luminance
 from ..warp.oracle import OracleWarp
-from .environment import SceneCache
-from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, emitter_id, environment_sample, first_hit,
-                         is_emitter, mis_weight, mitsuba_emitter_sample)
+from .environment import EnvironmentState, SceneCache
+from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, environment_sample, first_hit,
+                         mis_weight)
 from .options import OracleOptions, document_parameters
 
 
@@ -126,38 +126,24 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
         return f"OracleDirectIntegrator[{self.options}]"
 
 
-class OracleEnvironment:
-    """Per-scene state of :class:`OracleDirectIntegrator`.
-
-    Attributes: ``emitter`` (the environment or None), ``warp`` (an
+class OracleEnvironment(EnvironmentState):
+    """Per-scene state of :class:`OracleDirectIntegrator`: the environment state
+    (:class:`~.environment.EnvironmentState`) and ``warp``, an
     :class:`~mitsuba_shsampling.warp.oracle.OracleWarp` over the map's own,
-    uncompensated pyramid; None when the scene has no usable ``envmap``, and
-    every lane then uses Mitsuba's emitter sampling), ``reason`` (why not),
-    ``needs_emitter_sampling`` (Mitsuba's emitter sampling has work besides
-    the environment). Built from the plugin's checked ``options`` (``resolution``,
-    ``defensive_share``).
+    uncompensated pyramid (None when the scene has no usable ``envmap``; every
+    lane then uses Mitsuba's emitter sampling). Built from the plugin's checked
+    ``options`` (``resolution``, ``defensive_share``).
     """
 
     def __init__(self, scene: mi.Scene, options: OracleOptions):
-        self.emitter = scene.environment()
-        self.emitter_id = emitter_id(self.emitter)
+        super().__init__(scene)
         self.warp = None
-        others = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
-        self.needs_emitter_sampling = True
-        if self.emitter is None:
-            self.reason = "the scene has no environment emitter"
-        elif self.emitter.class_name() != "EnvironmentMapEmitter":
-            self.reason = f"the environment emitter is '{self.emitter.class_name()}', not an 'envmap'"
-        else:
+        if not self.reason:
             pyramid = EnvPyramid(self.emitter)
             self.reason = BLACK_MAP_REASON if pyramid.is_black else ""
             if not pyramid.is_black:
                 self.warp = OracleWarp(pyramid, options.resolution, options.defensive_share)
-                self.needs_emitter_sampling = bool(others)
-
-    def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
-        """Per-lane test: is ``emitter`` the environment map."""
-        return is_emitter(emitter, self.emitter_id)
+                self.needs_emitter_sampling = bool(self.other_emitters)
 
     def oracle_nee(self, scene, u, si, bsdf, ctx, lobe, table, oracle, frac_e, frac_b):
         """One oracle sample of the environment (BSDF value x radiance / pdf),
@@ -171,14 +157,6 @@ class OracleEnvironment:
 
     def emitter_nee(self, scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b):
         """One sample of Mitsuba's emitter sampling, without the environment's
-        share in oracle lanes (that belongs to :meth:`oracle_nee`); not traced
-        when no lane can use it."""
-        if not self.needs_emitter_sampling:
-            return mi.Spectrum(0.0)
-
-        def left_out(emitter):
-            return oracle & self.is_environment(emitter) if self.warp is not None else mi.Bool(False)
-
-        return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
-                                      frac_e, frac_b)
-
+        share in oracle lanes (that belongs to :meth:`oracle_nee`): :meth:`mitsuba_nee`."""
+        return self.mitsuba_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b,
+                                oracle if self.warp is not None else False)
