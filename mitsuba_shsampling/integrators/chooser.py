@@ -457,11 +457,12 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
                 choice, lean, gain = {**lean_choice, **full_choice}, False, error_lean / error_full
     apply_choice(env, choice, lean)
     return StrategyChoice(
-        materials_report(env, p, choice, lean_choice, variance if product_possible or alone_wanted else p.variance,
-                         forced),
-        {**(pilots.pass_time if pilots else {}), **confirmed}, gain, lean, time.perf_counter() - start, shared, fit,
-        pilots, sorted(env.material_name(k) for k in env.lobes.tabled_ids) if env.cosine_tables else [],
-        MEASURE if timed else ESTIMATE, costs.as_dict() if costs is not None else {})
+        materials=materials_report(env, p, choice, lean_choice,
+                                   variance if product_possible or alone_wanted else p.variance, forced),
+        pass_time={**(pilots.pass_time if pilots else {}), **confirmed}, predicted_gain=gain, lean=lean,
+        seconds=time.perf_counter() - start, shared_variance=shared, pilot_variance=fit, pilots=pilots,
+        cosine_tables=sorted(env.material_name(k) for k in env.lobes.tabled_ids) if env.cosine_tables else [],
+        mode=MEASURE if timed else ESTIMATE, costs=costs.as_dict() if costs is not None else {})
 
 
 def confirmation_timer(env, lean_choice: dict, render_pass: Callable, spp: int, confirmed: dict) -> Callable:
@@ -506,8 +507,9 @@ def stored_choice(env, stored: dict) -> StrategyChoice:
         row = shown.get(name, {})
         materials.append(MaterialChoice(name, strategy, row.get("share", 0.0), {}, row.get("predicted_gain", 1.0),
                                         row.get("forced", False)))
-    return StrategyChoice(materials, {}, plan.get("predicted_gain", 1.0), lean, 0.0,
-                          cosine_tables=sorted(stored["cosine_tables"]), mode="file", costs=plan.get("costs", {}))
+    return StrategyChoice(materials=materials, pass_time={}, predicted_gain=plan.get("predicted_gain", 1.0), lean=lean,
+                          seconds=0.0, cosine_tables=sorted(stored["cosine_tables"]), mode="file",
+                          costs=plan.get("costs", {}))
 
 
 # ----------------------------------------------------------------- the integrators' planner

@@ -52,7 +52,9 @@ class EnvironmentState:
     def __init__(self, scene: mi.Scene):
         self.emitter = scene.environment()
         self.emitter_id = emitter_id(self.emitter)
-        self.other_emitters = [e for e in scene.emitters() if self.emitter is None or e is not self.emitter]
+        # A flag, not the emitters: an area emitter kept alive past its scene points at a
+        # freed shape, and Mitsuba's virtual calls over every live emitter would reach it.
+        self.has_other_emitters = any(e is not self.emitter for e in scene.emitters())
         self.needs_emitter_sampling = True
         if self.emitter is None:
             self.reason = "the scene has no environment emitter"
@@ -178,7 +180,7 @@ class ProductEnvironment(EnvironmentState):
         self.reason = ""
         # Mitsuba's emitter sampling is only traced when some lane can use it: every
         # smooth lane samples the environment through this object.
-        self.needs_emitter_sampling = bool(self.other_emitters)
+        self.needs_emitter_sampling = self.has_other_emitters
         self.build_seconds = time.perf_counter() - start
 
     def _resolve_named(self, named: dict[str, Strategy]) -> dict[int, Strategy]:
@@ -357,30 +359,33 @@ class ProductEnvironment(EnvironmentState):
             return emitter_pdf
         return dr.select(self.is_environment(emitter), strategy_pdf, emitter_pdf)
 
-    def product_nee(self, scene, u, si, bsdf, ctx, lobe, use_product, smooth, carries_all,
-                    frac_e, frac_b, differentiable: bool = False):
+    def product_nee(self, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carries_all,
+                    frac_e: float = 0.5, frac_b: float = 0.5, share: float | None = None,
+                    differentiable: bool = False):
         """One sample of the environment (BSDF value x radiance / pdf) in the ``smooth``
         lanes, with the lane's strategy (:meth:`sample_environment`).
 
-        In ``carries_all`` lanes (:meth:`carries_all`) it is one of the lane's
-        equally weighted samples: weight ``frac_e``. Elsewhere it is
-        power-heuristic weighted against BSDF sampling with the strategies'
-        sample-count fractions. ``carries_all`` may be the Python value True
-        (inside a branch that only such lanes enter): then only the
+        In ``carries_all`` lanes (:meth:`carries_all`) it is one of the lane's equally
+        weighted samples: weight ``share``, its share of the lane's samples (default
+        ``frac_e``; a sample drawn in a BSDF sample's slot has ``frac_b``). Elsewhere it
+        is power-heuristic weighted against BSDF sampling with the strategies'
+        sample-count fractions ``frac_e``, ``frac_b``. ``carries_all`` may be the Python
+        value True (inside a branch that only such lanes enter): then only the
         uncompensated walks are traced. ``differentiable``: see
         :func:`~.estimators.environment_sample`."""
         if not self.active:
             return mi.Spectrum(0.0)
+        share = frac_e if share is None else share
         smooth = mi.Bool(smooth)
         # Packets without a smooth lane (sky, delta BSDFs) skip the walks.
         d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
                               true_fn=lambda c, v: self.sample_environment(c, v, use_product, carries_all),
                               false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
         if carries_all is True:  # a lane known to carry all: no MIS weight to trace
-            return environment_sample(scene, si, bsdf, ctx, d, pdf_e, smooth, lambda _: frac_e, differentiable)
+            return environment_sample(scene, si, bsdf, ctx, d, pdf_e, smooth, lambda _: share, differentiable)
         return environment_sample(
             scene, si, bsdf, ctx, d, pdf_e, smooth,
-            lambda bsdf_pdf: dr.select(carries_all, frac_e, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)),
+            lambda bsdf_pdf: dr.select(carries_all, share, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)),
             differentiable)
 
     def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False,

@@ -143,7 +143,7 @@ class OracleEnvironment(EnvironmentState):
             self.reason = BLACK_MAP_REASON if pyramid.is_black else ""
             if not pyramid.is_black:
                 self.warp = OracleWarp(pyramid, options.resolution, options.defensive_share)
-                self.needs_emitter_sampling = bool(self.other_emitters)
+                self.needs_emitter_sampling = self.has_other_emitters
 
     def oracle_nee(self, scene, u, si, bsdf, ctx, lobe, table, oracle, frac_e, frac_b):
         """One oracle sample of the environment (BSDF value x radiance / pdf),

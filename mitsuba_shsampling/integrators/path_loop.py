@@ -163,8 +163,9 @@ def trace_paths(mode: dr.ADMode, scene: mi.Scene, env, sampler: mi.Sampler, ray:
         smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         lobe, use_product = env.lobe(si, smooth & (depth < product_depth))
         # The BSDF sample always runs (it continues the path): no lane carries all.
-        Lr_env = env.product_nee(scene, sampler.next_2d(active), si, bsdf, ctx, lobe, use_product, smooth,
-                                 False, FRACTION, FRACTION, differentiable=not primal)
+        Lr_env = env.product_nee(scene, sampler.next_2d(active), si, bsdf, ctx, lobe=lobe, use_product=use_product,
+                                 smooth=smooth, carries_all=False, frac_e=FRACTION, frac_b=FRACTION,
+                                 differentiable=not primal)
         Lr_em = env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, FRACTION, FRACTION,
                                 differentiable=not primal)
 

@@ -105,8 +105,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
         # ------ Environment: product (or environment-alone) sampling; other emitters: Mitsuba's ------
         for _ in range(n_e):
-            L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe,
-                                 use_product, smooth, carries_all, frac_e, frac_b) / n_e
+            L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe=lobe, use_product=use_product,
+                                 smooth=smooth, carries_all=carries_all, frac_e=frac_e, frac_b=frac_b) / n_e
         for _ in range(n_e):
             L += env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
 
@@ -126,9 +126,9 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 continue
             L += dr.if_stmt(
                 args=(sample_1, sample_2), cond=carries_all,
-                # A strategy sample whose share of the lane's samples is frac_b.
-                true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe, use_product, smooth,
-                                                     True, frac_b, frac_e) / n_b,
+                # A strategy sample in a BSDF sample's slot: its share of the lane's samples is frac_b.
+                true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product,
+                                                     smooth=smooth, carries_all=True, share=frac_b) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b, env.needs_emitter_sampling) / n_b)
 
