@@ -239,15 +239,19 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
     lit = quarter_sum > 0
     safe_sum = np.where(lit, quarter_sum, 1.0)
     low, high = _bilinear_sub_weights(parts)
-    second_moment = 0.0
-    for i in range(parts):
-        for j in range(parts):
-            mass = (v00 * (low[i] * low[j]) + v01 * (low[i] * high[j])
-                    + v10 * (high[i] * low[j]) + v11 * (high[i] * high[j])) / safe_sum
-            # A leaf with black corners is placed uniformly.
-            q = leaf_share * np.where(lit, mass, 1.0 / parts ** 2)
-            t = share[:, i, :, j]
-            second_moment += float(np.sum(np.divide(t * t, q, out=np.zeros_like(t), where=q > 0)))
+    # Every sub-cell (i, j) of every leaf at once, in ``share``'s (leaf row, i, leaf
+    # column, j) layout: one pass over the finest level, not parts^2 small ones.
+    def leaf(x):
+        return x[:, None, :, None]
+
+    def sub(a, b):
+        return np.multiply.outer(a, b)[None, :, None, :]
+
+    mass = (leaf(v00) * sub(low, low) + leaf(v01) * sub(low, high)
+            + leaf(v10) * sub(high, low) + leaf(v11) * sub(high, high)) / leaf(safe_sum)
+    # A leaf with black corners is placed uniformly.
+    q = leaf(leaf_share) * np.where(leaf(lit), mass, 1.0 / parts ** 2)
+    second_moment = float(np.sum(np.divide(share * share, q, out=np.zeros_like(share), where=q > 0)))
     return second_moment - 1.0
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, NamedTuple
 
 import drjit as dr
@@ -136,11 +137,26 @@ class ProductEnvironment(EnvironmentState):
             if self.emitter is not None:  # an environment of another kind: say so once
                 warnings.warn(f"mitsuba_shsampling: {self.reason}")
             return
-        self.lobes = SceneLobes(scene, max_bands=options.max_bands)
-        if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
-            self.reason = "every BSDF in the scene is delta: no shading point samples the environment"
-            return
-        self.pyramid = EnvPyramid(self.emitter, mis_compensation=options.mis_compensation)
+        forced = None if options.default_strategy == AUTO else strategy_named(options.default_strategy)
+        named = {name: strategy_named(value) for name, value in options.material_strategies.items()
+                 if value != AUTO}
+        any_smooth = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth) for m in self._materials.values())
+        # The pyramids are numpy work that does not depend on the lobes: built in
+        # threads while the lobes are fitted (on two cores about a second less set-up
+        # on a 1k map). The uncompensated one is started where the product may carry
+        # every sample; it is dropped if no material turns out to have a product lobe.
+        wants_plain = (carry_all and options.mis_compensation
+                       and (forced is None or forced.uses_product or any(s.uses_product for s in named.values())))
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            pyramid = pool.submit(EnvPyramid, self.emitter, mis_compensation=options.mis_compensation) \
+                if any_smooth else None
+            plain_pyramid = pool.submit(EnvPyramid, self.emitter) if any_smooth and wants_plain else None
+            self.lobes = SceneLobes(scene, max_bands=options.max_bands)
+            if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
+                self.reason = "every BSDF in the scene is delta: no shading point samples the environment"
+                return
+            self.pyramid = pyramid.result()
+            plain_pyramid = plain_pyramid.result() if plain_pyramid is not None else None
         if self.pyramid.is_black:
             self.reason = BLACK_MAP_REASON
             return
@@ -151,9 +167,6 @@ class ProductEnvironment(EnvironmentState):
         self.env_plain = EmitterDirections(self.emitter)
         self.env_directions = (EmitterDirections(compensated_copy(self.emitter)) if self.pyramid.mis_compensation
                                else self.env_plain)
-        forced = None if options.default_strategy == AUTO else strategy_named(options.default_strategy)
-        named = {name: strategy_named(value) for name, value in options.material_strategies.items()
-                 if value != AUTO}
         # A forced strategy that keeps the BSDF sample leaves nothing to trace for lanes without it.
         self.carry_all = carry_all and (forced is None or forced.carries_all
                                         or any(s.carries_all for s in named.values()))
@@ -169,7 +182,7 @@ class ProductEnvironment(EnvironmentState):
                                 proxy_depth=options.warp_proxy_depth, cosine_tables=self.lobes.has_cosine_lobes)
             self.warp = self.warp_plain = ProductWarp(self.pyramid, **warp_options)
             if self.pyramid.mis_compensation:
-                self.warp_plain = ProductWarp(EnvPyramid(self.emitter), **warp_options) if carry_all else None
+                self.warp_plain = ProductWarp(plain_pyramid, **warp_options) if carry_all else None
         first = forced or Strategy.PRODUCT
         self.strategies = StrategyTable({key: self._runnable(key, first) for key, m in self._materials.items()
                                          if mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth)})
