@@ -140,30 +140,40 @@ def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.
     """
     k_count, m_count = light_directions.shape[:2]
     angles = np.arange(azimuths) * np.pi / azimuths
-    u_count = len(uvs) * azimuths
+    uv_count = len(uvs)
+    u_count = uv_count * azimuths
     flip = -1.0 if back_side else 1.0
 
-    def turned(d):  # (..., 3) -> (..., U * azimuths, 3): each direction at every angle
+    def turned(d):  # (..., 3) -> (..., azimuths, 3): each direction at every angle, float32
         c, s = np.cos(angles), np.sin(angles)
         x = d[..., None, 0] * c - d[..., None, 1] * s
         y = d[..., None, 0] * s + d[..., None, 1] * c
         z = np.broadcast_to(d[..., None, 2], x.shape)
-        out = np.stack([x, y, z], axis=-1)
-        return np.repeat(out, len(uvs), axis=-2)
+        return np.stack([x, y, flip * z], axis=-1).reshape(-1, 3).astype(np.float32)
 
-    wi = np.stack([view_direction(c) for c in view_cosines])           # (K, 3)
-    wi = np.broadcast_to(turned(wi)[:, None], (k_count, m_count, u_count, 3)).reshape(-1, 3)
-    wo = turned(light_directions).reshape(-1, 3)
-    uv = np.broadcast_to(np.tile(uvs, (azimuths, 1))[None, None], (k_count, m_count, u_count, 2)).reshape(-1, 2)
+    # The K x M x U table is indexed in the kernel: lane (k, m, a, j) reads view k and
+    # light m turned by angle a, at uv position j. Only the small per-view and
+    # per-light arrays cross from the host (K M U copies of them cost more than the
+    # BSDF evaluations).
+    wi = turned(np.stack([view_direction(c) for c in view_cosines]))   # (K azimuths, 3)
+    wo = turned(np.asarray(light_directions, dtype=np.float64))        # (K M azimuths, 3)
+    lane = dr.arange(mi.UInt32, k_count * m_count * u_count)
+    light_index, u = lane // u_count, lane % u_count
+    angle, uv_index = u // uv_count, u % uv_count
+    view_index = (light_index // m_count) * azimuths + angle
 
-    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+    def gathered(table, index):
+        return dr.gather(mi.Vector3f, mi.Vector3f(table[:, 0], table[:, 1], table[:, 2]), index)
+
+    si = dr.zeros(mi.SurfaceInteraction3f, k_count * m_count * u_count)
     si.t = 0.0
     si.n = mi.Normal3f(0.0, 0.0, flip)
     si.sh_frame = mi.Frame3f(mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0),
                              mi.Vector3f(0.0, 0.0, 1.0))
-    si.uv = mi.Point2f(uv[:, 0], uv[:, 1])
-    si.wi = mi.Vector3f(wi[:, 0], wi[:, 1], flip * wi[:, 2])
-    light = mi.Vector3f(wo[:, 0], wo[:, 1], flip * wo[:, 2])
+    uvs = np.asarray(uvs, dtype=np.float32)
+    si.uv = dr.gather(mi.Point2f, mi.Point2f(uvs[:, 0], uvs[:, 1]), uv_index)
+    si.wi = gathered(wi, view_index)
+    light = gathered(wo, light_index * azimuths + angle)
     value = luminance(bsdf.eval(mi.BSDFContext(), si, light))
     g = np.array(value, dtype=np.float64).reshape(k_count, m_count, u_count)
     # Negative or non-finite values would make the fit meaningless; they can only
@@ -171,9 +181,14 @@ def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.
     return np.where(np.isfinite(g), np.maximum(g, 0.0), 0.0)
 
 
+@functools.lru_cache(maxsize=256)
 def mirror_quadrature(view_cosine: float) -> LobeQuadrature:
-    """The fitting quadrature of one view elevation: centred on the mirror direction."""
-    return LobeQuadrature.build(mirror_direction(view_direction(view_cosine)))
+    """The fitting quadrature of one view elevation: centred on the mirror direction.
+    The same for every BSDF, so built once per elevation (its arrays are read-only)."""
+    quadrature = LobeQuadrature.build(mirror_direction(view_direction(view_cosine)))
+    for array in (quadrature.directions, quadrature.weights, quadrature.cos_to_axis):
+        array.flags.writeable = False
+    return quadrature
 
 
 def phong_lobe(cos_to_axis: np.ndarray, s) -> np.ndarray:
