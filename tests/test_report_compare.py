@@ -391,6 +391,35 @@ def test_equal_time_estimates_that_disagree_get_a_caveat():
     assert any(c.startswith("the two equal-time estimates disagree") for c in row.caveats)
 
 
+def test_the_equal_sample_estimate_agrees_with_the_equal_time_renders_when_a_pass_has_a_fixed_overhead():
+    from mitsuba_shsampling.report.verdict import verdict
+
+    # Pass time = overhead + spp x cost per sample; per-sample variance sigma^2, so a pass's
+    # MSE is sigma^2 / spp (noise-free here: the expectation). The plugin's sample costs 1.5x
+    # and has a quarter of the variance: at equal time it is 4 / 1.5 = 2.67x as efficient.
+    overhead, spp, budget = 0.1, 8, 0.3
+    cost = {"direct": 0.01, "sh_direct": 0.015}
+    sigma2 = {"direct": 1.0, "sh_direct": 0.25}
+    methods = {}
+    for name in cost:
+        passes = 16
+        equal_spp = verdict_entry([sigma2[name] / spp] * passes, time_s=overhead + spp * cost[name])
+        timed_spp = round((budget - overhead) / cost[name])
+        equal_spp["equal_spp"]["spp"] = spp
+        equal_spp["equal_time"].update(spp=timed_spp, time_s=overhead + timed_spp * cost[name],
+                                       times_s=[overhead + timed_spp * cost[name]] * passes)
+        equal_spp["equal_time"]["error"]["mse_per_pass"] = [sigma2[name] / timed_spp] * passes
+        equal_spp["equal_time"]["error"]["mse"] = sigma2[name] / timed_spp
+        methods[name] = equal_spp
+    (row,) = verdict(one_cell_report(methods))
+    assert row.equal_time.ratio == pytest.approx(4 / 1.5, rel=0.02)
+    assert row.time_normalised.ratio == pytest.approx(row.equal_time.ratio, rel=1e-9)
+    assert not any("disagree" in c for c in row.caveats)
+    # Timed as its own pass, the overhead would have diluted the plugin's extra cost per sample:
+    naive = (sigma2["direct"] * (overhead + spp * cost["direct"])) / (sigma2["sh_direct"] * (overhead + spp * cost["sh_direct"]))
+    assert abs(naive / row.equal_time.ratio - 1) > 0.15
+
+
 def test_heavy_tails_are_flagged_only_for_the_methods_the_verdict_shows():
     from mitsuba_shsampling.report.verdict import verdict
 

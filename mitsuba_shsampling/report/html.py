@@ -171,8 +171,9 @@ def _verdict_section(report: Report) -> str:
               f"{metrics.INTERVAL:.0%} paired bootstrap interval over passes.</p>"
               f'<p id="deciding-estimate"><b>Which estimate decides:</b> at equal time, the renders at '
               f"equal time. The estimate from the equal-sample passes is shown beside them; it holds "
-              f"where the MSE falls as 1/spp (the independent sampler) and a pass's time is proportional "
-              f"to its samples (no fixed overhead per pass), and a caveat says when the two disagree.</p>")
+              f"where the MSE falls as 1/spp (the independent sampler). Its passes are timed at the cost "
+              f"per sample each method had at equal time, so a fixed overhead per pass counts as it does "
+              f"there; a caveat says when the two disagree.</p>")
     if others:
         legend += ('<p>The project\'s other configurations, each against the same best Mitsuba strategy:</p>'
                    f'<table id="verdict-others">{head.replace("<th>caveats</th>", "")}{"".join(others)}</table>')

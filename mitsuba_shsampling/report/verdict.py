@@ -6,8 +6,10 @@ can be recomputed from a saved report. For each scene, sampler and method family
 - **equal samples**: lowest expected MSE (mean over passes of each pass's MSE);
 - **equal time**: highest efficiency 1 / (MSE x time per pass) of the equal-time renders;
 - **equal time, from the equal-sample passes** (``time_normalised``): the same efficiency
-  of the equal-sample passes. For these unbiased estimators the MSE falls as 1 / spp, so it
-  estimates what the equal-time renders estimate; but there the two methods render each
+  from the equal-sample passes' MSE, each pass timed at the cost per sample the method had
+  at equal time (:func:`at_equal_time_cost`, so that a fixed overhead per pass counts as it
+  does there). For these unbiased estimators the MSE falls as 1 / spp, so it estimates
+  what the equal-time renders estimate; but there the two methods render each
   pass at one seed and one spp, so noise they draw alike (the same pixel positions, the
   same BSDF-sampled paths: a sun seen in a mirror, a caustic through glass) cancels in the
   pairing, while at equal time their spp differ and it does not. Where the two equal-time
@@ -29,6 +31,7 @@ Reference rows (the oracle) are no contenders: they appear in the caveats only.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -87,6 +90,19 @@ def _efficiency(entry: PassResult, idx=None) -> float:
     return 1.0 / denom if denom > 0 else (math.inf if denom == 0 else math.nan)
 
 
+def at_equal_time_cost(result: MethodResult) -> PassResult:
+    """``result``'s equal-sample passes, each timed at what a sample cost it at equal time
+    (the equal-time pass's time over its spp, times the equal-sample spp): the efficiency
+    of these passes estimates the equal-time renders' even where a pass has a fixed
+    overhead (tracing, a launch, the film), which makes a pass's time not proportional
+    to its samples. The equal-sample passes unchanged where no equal-time phase ran."""
+    timed = result.equal_time
+    if timed is None or not timed.spp or not timed.time_s:
+        return result.equal_spp
+    time_s = timed.time_s * result.equal_spp.spp / timed.spp
+    return dataclasses.replace(result.equal_spp, times_s=[time_s] * len(result.equal_spp.times_s), time_s=time_s)
+
+
 #: Each kind of contest (the order of :data:`.schema.CONTEST_TITLES`): the phase whose
 #: passes it reads, its quantity.
 KINDS = {"equal_spp": ("equal_spp", "MSE"), "equal_time": ("equal_time", "efficiency"),
@@ -102,6 +118,8 @@ def _cell(results: dict[str, MethodResult], kind: str, project: list[str], mitsu
     the runner-up."""
     phase, quantity = KINDS[kind]
     entries = {n: getattr(results[n], phase) for n in project + mitsuba}
+    if kind == "time_normalised":
+        entries = {n: at_equal_time_cost(results[n]) for n in entries}
     statistic, sign = QUANTITIES[quantity]
 
     def rank(name: str) -> tuple[bool, float]:
@@ -261,7 +279,7 @@ def verdict(report: Report | dict) -> list[VerdictRow]:
                         f"the two equal-time estimates disagree: {cell_time.ratio:.3g} [{cell_time.low:.3g}, "
                         f"{cell_time.high:.3g}] from the equal-time renders, {cell_normalised.ratio:.3g} "
                         f"[{cell_normalised.low:.3g}, {cell_normalised.high:.3g}] from the equal-sample passes "
-                        f"(the pass time changing with spp, a bias, or rare samples in one phase only)")
+                        f"(a bias, an MSE that does not fall as 1/spp, or rare samples in one phase only)")
                 rows.append(VerdictRow(scene=scene.scene, sampler=run.sampler, family=family, **contests,
                                        caveats=caveats,
                                        configuration=(configuration(lead, results[lead], family)
