@@ -16,10 +16,10 @@ import mitsuba as mi
 
 
 def mis_weight(pdf_a, pdf_b):
-    """Power heuristic (beta = 2), robust to infinite and zero pdfs."""
-    a2, b2 = dr.square(pdf_a), dr.square(pdf_b)
-    w = a2 / (a2 + b2)
-    return dr.select(dr.isfinite(w), w, 0.0)
+    """Mitsuba's power heuristic (``mi.ad.integrators.common.mis_weight``, as its ``prb``
+    uses it): 0 where the ratio is not finite, and detached (a weight is a function of
+    where the samples fell, which a derivative does not move)."""
+    return mi.ad.integrators.common.mis_weight(pdf_a, pdf_b)
 
 
 def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
