@@ -21,7 +21,7 @@ from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong,
 from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.chooser import (choose_strategies, confirm_by_timing,  # noqa: E402
                                                     minimise_error_at_equal_time)
-from mitsuba_shsampling.integrators.pilots import (LEAN, Pilots, calibrate, cosine_pilot,  # noqa: E402
+from mitsuba_shsampling.integrators.pilots import (LEAN, Candidate, Pilots, calibrate, cosine_pilot,  # noqa: E402
                                                    film_variance_factor, measure_pass_costs)
 from mitsuba_shsampling.integrators.quadrature import camera_frames, frame_variances  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
@@ -305,7 +305,7 @@ def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_meas
     """Pilot images that show the product at twice the quadrature's variance (and the
     environment as predicted, nothing shared) double the product's predicted variances."""
     variance = {1: {E: 4.0, P: 1.0}, 2: {E: 2.0, P: 2.0}}
-    candidates = {E.label: {1: E, 2: E}, P.label: {1: P, 2: E}}
+    candidates = {E.label: Candidate({1: E, 2: E}), P.label: Candidate({1: P, 2: E})}
     model = {E.label: 0.5 + 6.0, P.label: 0.5 + 1.0 + 2.0}
     pilots = Pilots({}, spp=1)
     calibrate(pilots, {E.label: 6.5, P.label: 0.5 + 2.0 * 1.0 + 2.0}, model, candidates, variance, rest=0.5)
@@ -325,7 +325,8 @@ def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():
     env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
     (key,) = env.strategies.ids
     seeds = []
-    pilots = measure_pass_costs(env, {LEAN: LEAN, E.label: {key: E}, P.label: {key: P}},
+    pilots = measure_pass_costs(env, {LEAN: Candidate.lean_kernel([key]), E.label: Candidate({key: E}),
+                                      P.label: Candidate({key: P})},
                                 lambda seed: seeds.append(seed), repeats=3)
     rounds = [seeds[i:i + 3] for i in range(0, len(seeds), 3)]
     assert len(rounds) == 4 and all(len(set(r)) == 1 for r in rounds) and len({r[0] for r in rounds}) == 4
@@ -430,6 +431,9 @@ def test_a_measured_plan_times_every_strategy_and_prices_the_cosine_tables_apart
     # prices the cosine tables apart from the SH walk.
     assert {cosine_pilot(P), cosine_pilot(PO)} <= set(choice.pass_time)
     assert choice.costs["source"] == "measured in the scene"
+    # The pilots' times are the pilots' only: rivals timed as wholes are kept apart.
+    assert set(choice.pass_time) <= {LEAN, *(s.label for s in (E, P, PO, EO)), cosine_pilot(P), cosine_pilot(PO)}
+    assert all(name.startswith("confirm ") for name in choice.confirmation_time)
 
 
 @pytest.mark.parametrize("name", ["sh_direct", "sh_path"])

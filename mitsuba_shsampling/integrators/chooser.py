@@ -50,7 +50,7 @@ import mitsuba as mi
 import numpy as np
 
 from .costs import CostModel, cost_model
-from .pilots import (LEAN, LEAN_STRATEGY, PILOT_IMAGES, PILOT_LANES, Pilots, calibrate, cosine_pilot,
+from .pilots import (LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate, cosine_pilot,
                      film_variance_factor, frozen_pilots, measure_pass_costs)
 from .quadrature import camera_frames, frame_variances
 from . import plan_file
@@ -105,9 +105,8 @@ class StrategyChoice:
     materials: list
     pass_time: dict
     """``plan`` ``measure``: pilot -> pass time (s), each strategy with every material
-    that can run it on it, :data:`~.pilots.LEAN` (the kernel without product code), and
-    ``confirm 0`` (the model's pick), ``confirm 1`` ... (its close rivals) where
-    :func:`confirm_by_timing` ran. Empty with ``plan`` ``estimate``."""
+    that can run it on it, and :data:`~.pilots.LEAN` (the kernel without product code).
+    Empty with ``plan`` ``estimate``."""
     predicted_gain: float
     """Predicted equal-time efficiency of the choice over the lean kernel (every
     material on its best environment strategy, no product code: Mitsuba's
@@ -137,12 +136,16 @@ class StrategyChoice:
     """The cost model the plan was weighed with (:meth:`CostModel.as_dict`)."""
     setup_seconds: float = 0.0
     """Set-up before the first pass: the per-scene state's build and the plan."""
+    confirmation_time: dict = dataclasses.field(default_factory=dict)
+    """``plan`` ``measure``, where :func:`confirm_by_timing` ran: ``confirm 0`` (the model's
+    pick), ``confirm 1`` ... (its close rivals) -> pass time (s) of each, timed as a whole."""
 
     def as_dict(self) -> dict:
         return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
                 "mode": self.mode, "setup_seconds": self.setup_seconds, "costs": dict(self.costs),
                 "cosine_tables": list(self.cosine_tables),
-                "pass_time_s": dict(self.pass_time), "shared_variance": self.shared_variance,
+                "pass_time_s": dict(self.pass_time), "confirmation_time_s": dict(self.confirmation_time),
+                "shared_variance": self.shared_variance,
                 "calibration": {s.label: f for s, f in (self.pilots.calibration if self.pilots else {}).items()},
                 "pilot_variance": {k: {"predicted": p, "measured": m} for k, (p, m) in self.pilot_variance.items()},
                 "materials": [{"name": m.name, "strategy": m.strategy.label, "share": m.share,
@@ -321,7 +324,7 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
 
 
 def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool) -> dict:
-    """Pilot name -> assignment (registry id -> strategy, or :data:`~.pilots.LEAN`).
+    """Pilot name -> :class:`~.pilots.Candidate` (each material's strategy; the lean kernel).
 
     Images need the environment strategy (for ``S``) and each product strategy on every
     material that can run it (for its calibration). Timed pilots also run the lean kernel,
@@ -329,19 +332,20 @@ def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool) -> dic
     cosine lobes and SH lobes could both run a product strategy, that strategy on the
     cosine lobes alone, which tells the tables' cost from the SH walk's."""
     environment = {k: Strategy.ENVIRONMENT for k in p.materials}
-    candidates = {LEAN: LEAN} if timed else {}
-    candidates[Strategy.ENVIRONMENT.label] = environment
+    candidates = {LEAN: Candidate.lean_kernel(p.materials)} if timed else {}
+    candidates[Strategy.ENVIRONMENT.label] = Candidate(environment)
     if timed and any(s == Strategy.ENVIRONMENT_ONLY for s in lean_choice.values()):
-        candidates[Strategy.ENVIRONMENT_ONLY.label] = {
+        candidates[Strategy.ENVIRONMENT_ONLY.label] = Candidate({
             **environment, **{k: Strategy.ENVIRONMENT_ONLY for k in p.materials if Strategy.ENVIRONMENT_ONLY
-                              in env.allowed(k)}}
+                              in env.allowed(k)}})
     cosine = {k for k in p.materials if env.samples_from_cosine_table(k)}
     for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
         capable = [k for k in p.materials if strategy in env.allowed(k)]
         if capable:
-            candidates[strategy.label] = {**environment, **{k: strategy for k in capable}}
+            candidates[strategy.label] = Candidate({**environment, **{k: strategy for k in capable}})
         if timed and any(k in cosine for k in capable) and any(k not in cosine for k in capable):
-            candidates[cosine_pilot(strategy)] = {**environment, **{k: strategy for k in capable if k in cosine}}
+            candidates[cosine_pilot(strategy)] = Candidate({**environment,
+                                                            **{k: strategy for k in capable if k in cosine}})
     return candidates
 
 
@@ -359,8 +363,8 @@ def calibrated(p: Predictions, pilots: Pilots, candidates: dict, film: mi.Film):
     """``(variance, rest, shared, fit)``: the predictions scaled to what the pilot images
     measured (:func:`~.pilots.calibrate`, rounded to :data:`SIGNIFICANT_DIGITS`), the
     shared variance ``S`` and, per pilot, (predicted, measured) film variance."""
-    model = {name: p.rest + sum(p.variance[k][LEAN_STRATEGY if a == LEAN else a[k]] for k in p.materials)
-             for name, a in candidates.items()}
+    model = {name: p.rest + sum(p.variance[k][c.assignment[k]] for k in p.materials)
+             for name, c in candidates.items()}
     factor = film_variance_factor(film, pilots.spp)
     measured = {name: v / factor for name, v in pilots.image_variance.items() if name in model}
     if pilots.shared_variance is None:
@@ -459,7 +463,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     return StrategyChoice(
         materials=materials_report(env, p, choice, lean_choice,
                                    variance if product_possible or alone_wanted else p.variance, forced),
-        pass_time={**(pilots.pass_time if pilots else {}), **confirmed}, predicted_gain=gain, lean=lean,
+        pass_time=dict(pilots.pass_time if pilots else {}), confirmation_time=confirmed, predicted_gain=gain,
+        lean=lean,
         seconds=time.perf_counter() - start, shared_variance=shared, pilot_variance=fit, pilots=pilots,
         cosine_tables=sorted(env.material_name(k) for k in env.lobes.tabled_ids) if env.cosine_tables else [],
         mode=MEASURE if timed else ESTIMATE, costs=costs.as_dict() if costs is not None else {})
@@ -470,7 +475,7 @@ def confirmation_timer(env, lean_choice: dict, render_pass: Callable, spp: int, 
     with the lean choice's strategies for the materials it leaves out); their times are
     also reported with the pilots' (``confirmed``)."""
     def time_assignments(assignments):
-        whole = {name: {**lean_choice, **a} for name, a in assignments.items()}
+        whole = {name: Candidate({**lean_choice, **a}) for name, a in assignments.items()}
         times = measure_pass_costs(env, whole, lambda seed: render_pass(spp, seed), spp=spp).pass_time
         confirmed.update(times)
         return times

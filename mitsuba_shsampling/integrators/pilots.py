@@ -49,6 +49,20 @@ LEAN_STRATEGY = Strategy.ENVIRONMENT
 """What every material runs in the :data:`LEAN` pilot."""
 
 
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """What one pilot renders with: each material's strategy (registry id -> strategy),
+    and whether the kernel leaves the product's code out (the :data:`LEAN` pilot, whose
+    materials all run :data:`LEAN_STRATEGY`)."""
+
+    assignment: dict
+    lean: bool = False
+
+    @classmethod
+    def lean_kernel(cls, materials) -> "Candidate":
+        return cls({key: LEAN_STRATEGY for key in materials}, lean=True)
+
+
 def cosine_pilot(strategy: Strategy) -> str:
     """Pilot key of ``strategy`` on the materials with a clamped-cosine lobe alone (the
     others on the environment strategy): with the pilot of ``strategy`` on every
@@ -93,9 +107,7 @@ def film_variance_factor(film: mi.Film, spp: int) -> float:
 def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], object],
                        repeats: int = PILOT_REPEATS, spp: int = 1, timed: bool = True) -> Pilots:
     """Pass time (s) and image variance per candidate: ``candidates`` maps a name to
-    the assignment (registry id -> strategy) it runs with, or to :data:`LEAN` for
-    the kernel without product code (every material on the environment strategy);
-    ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
+    the :class:`Candidate` it runs; ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
     ``timed``: one warm-up pass per kernel, then ``repeats`` timed rounds, candidates
     interleaved; the fastest time per candidate, as kernel time
     (:func:`~mitsuba_shsampling.timing.kernel_time`). Otherwise ``repeats`` rounds of
@@ -106,13 +118,11 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
     saved = {key: table.of(key) for key in table.ids}
     warps = env.warp, env.warp_plain
 
-    def configure(assignment):
+    def configure(candidate: Candidate):
         env.warp, env.warp_plain = warps
-        if assignment == LEAN:
-            table.assign({key: LEAN_STRATEGY for key in table.ids})
+        table.assign(candidate.assignment)
+        if candidate.lean:
             env.drop_product()
-        else:
-            table.assign(assignment)
 
     times = {name: [] for name in candidates}
     images = {name: [] for name in candidates}
@@ -120,8 +130,8 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
     try:
         # Timed: round 0 compiles each kernel once (the render reuses it) and is not timed.
         for round_ in range(repeats + 1 if timed else repeats):
-            for name, assignment in candidates.items():
-                configure(assignment)
+            for name, candidate in candidates.items():
+                configure(candidate)
                 if timed:
                     image, elapsed = kernel_time(lambda: render_pass(PILOT_SEED + round_))
                     if round_ > 0:
@@ -213,11 +223,11 @@ def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, var
         pilots.calibration = {Strategy.ENVIRONMENT: scale, Strategy.ENVIRONMENT_ONLY: scale}
     environment_scale = pilots.calibration.get(Strategy.ENVIRONMENT, 1.0)
     for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
-        assignment = candidates.get(strategy.label)
-        if assignment is None or strategy.label not in measured:
+        candidate = candidates.get(strategy.label)
+        if candidate is None or strategy.label not in measured:
             continue
-        own = sum(variance[k][strategy] for k, s in assignment.items() if s == strategy)
-        others = rest + sum(variance[k][s] for k, s in assignment.items() if s != strategy)
+        own = sum(variance[k][strategy] for k, s in candidate.assignment.items() if s == strategy)
+        others = rest + sum(variance[k][s] for k, s in candidate.assignment.items() if s != strategy)
         if not np.isfinite(own + others) or own <= 1e-3 * model[strategy.label]:
             continue  # the strategy barely shows in its pilot (or cannot be predicted)
         observed = measured[strategy.label] - pilots.shared_variance - others * environment_scale
