@@ -103,3 +103,13 @@ def test_no_function_of_the_integrators_is_longer_than_80_lines():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= 80:
                 long.append(f"{path.name}:{node.name} ({node.end_lineno - node.lineno + 1} lines)")
     assert long == []
+
+
+def test_a_lanes_estimators_read_the_per_scene_state_which_never_calls_them():
+    """One direction of travel: integrators -> estimators -> environment (state and strategies)."""
+    modules = module_files()
+    state = f"{PACKAGE}.integrators.environment"
+    estimators = f"{PACKAGE}.integrators.estimators"
+    assert estimators not in imported_modules(state, modules[state], modules)
+    assert state not in imported_modules(f"{PACKAGE}.integrators.strategy", modules[f"{PACKAGE}.integrators.strategy"],
+                                         modules)

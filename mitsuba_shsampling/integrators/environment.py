@@ -35,9 +35,26 @@ from ..scene_materials import registry_id, scene_materials
 from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
-from .estimators import emitter_id, environment_sample, is_emitter, mis_weight, mitsuba_emitter_sample
 from .options import OptionError, ProductOptions
 from .strategy import AUTO, Strategy, StrategyTable, strategy_named
+
+
+def emitter_id(emitter: mi.Emitter | None) -> mi.UInt32 | None:
+    """The registry id of ``emitter`` as an opaque value, for :func:`is_emitter` (None for
+    no emitter).
+
+    Opaque, not a literal: Mitsuba loads a scene's objects in parallel by default, so
+    their registry ids change from run to run, and a literal id would make every kernel
+    that tests it new to Dr.Jit's kernel cache in each process (compiled again:
+    seconds of a first render's set-up)."""
+    if emitter is None:
+        return None
+    return dr.opaque(mi.UInt32, int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(emitter))[0]))
+
+
+def is_emitter(emitter: mi.EmitterPtr, which: mi.UInt32) -> mi.Bool:
+    """Per-lane test: is ``emitter`` the emitter whose id (:func:`emitter_id`) is ``which``."""
+    return dr.reinterpret_array(mi.UInt32, emitter) == which
 
 
 class EnvironmentState:
@@ -68,25 +85,6 @@ class EnvironmentState:
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""
         return is_emitter(emitter, self.emitter_id)
-
-    def mitsuba_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, sampled_here,
-                    weight_one=False, differentiable: bool = False) -> mi.Spectrum:
-        """One sample of Mitsuba's emitter sampling in the ``smooth`` lanes, without the
-        environment where this package samples it (``sampled_here``: a per-lane mask, or
-        True / False for every lane); not traced at all when no lane can use it. ``weight_one`` lanes run no
-        BSDF sample (weight 1); ``differentiable``: see
-        :func:`~.estimators.mitsuba_emitter_sample`."""
-        if not self.needs_emitter_sampling:
-            return mi.Spectrum(0.0)
-
-        def left_out(emitter):
-            if sampled_here is False or sampled_here is True:  # every lane alike
-                return self.is_environment(emitter) if sampled_here else mi.Bool(False)
-            return sampled_here & self.is_environment(emitter)
-
-        return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
-                                      frac_e, frac_b, weight_one=weight_one, differentiable=differentiable)
-
 
 class ProductEnvironment(EnvironmentState):
     """Environment sampling for one scene, with a strategy per material.
@@ -140,23 +138,11 @@ class ProductEnvironment(EnvironmentState):
         forced = None if options.default_strategy == AUTO else strategy_named(options.default_strategy)
         named = {name: strategy_named(value) for name, value in options.material_strategies.items()
                  if value != AUTO}
-        any_smooth = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth) for m in self._materials.values())
-        # The pyramids are numpy work that does not depend on the lobes: built in
-        # threads while the lobes are fitted (on two cores about a second less set-up
-        # on a 1k map). The uncompensated one is started where the product may carry
-        # every sample; it is dropped if no material turns out to have a product lobe.
         wants_plain = (carry_all and options.mis_compensation
                        and (forced is None or forced.uses_product or any(s.uses_product for s in named.values())))
-        with ThreadPoolExecutor(max_workers=2) as pool:
-            pyramid = pool.submit(EnvPyramid, self.emitter, mis_compensation=options.mis_compensation) \
-                if any_smooth else None
-            plain_pyramid = pool.submit(EnvPyramid, self.emitter) if any_smooth and wants_plain else None
-            self.lobes = SceneLobes(scene, max_bands=options.max_bands)
-            if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
-                self.reason = "every BSDF in the scene is delta: no shading point samples the environment"
-                return
-            self.pyramid = pyramid.result()
-            plain_pyramid = plain_pyramid.result() if plain_pyramid is not None else None
+        plain_pyramid = self._fit_lobes_and_build_pyramids(scene, options, wants_plain)
+        if self.pyramid is None:  # every BSDF is delta (reason says so)
+            return
         if self.pyramid.is_black:
             self.reason = BLACK_MAP_REASON
             return
@@ -195,6 +181,27 @@ class ProductEnvironment(EnvironmentState):
         # smooth lane samples the environment through this object.
         self.needs_emitter_sampling = self.has_other_emitters
         self.build_seconds = time.perf_counter() - start
+
+    def _fit_lobes_and_build_pyramids(self, scene, options: ProductOptions, wants_plain: bool):
+        """Set ``lobes`` and ``pyramid`` (or ``reason`` where every BSDF is delta); returns
+        the uncompensated pyramid where ``wants_plain``.
+
+        The pyramids are numpy work that does not depend on the lobes: built in threads
+        while the lobes are fitted (on two cores about a second less set-up on a 1k map).
+        The uncompensated one is started where the product may carry every sample; it is
+        dropped if no material turns out to have a product lobe."""
+        any_smooth = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth) for m in self._materials.values())
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            pyramid = pool.submit(EnvPyramid, self.emitter, mis_compensation=options.mis_compensation) \
+                if any_smooth else None
+            plain_pyramid = pool.submit(EnvPyramid, self.emitter) if any_smooth and wants_plain else None
+            self.lobes = SceneLobes(scene, max_bands=options.max_bands)
+            if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
+                self.reason = "every BSDF in the scene is delta: no shading point samples the environment"
+                return None
+            self.pyramid = (pyramid.result() if pyramid is not None
+                            else EnvPyramid(self.emitter, mis_compensation=options.mis_compensation))
+            return plain_pyramid.result() if plain_pyramid is not None else None
 
     def _resolve_named(self, named: dict[str, Strategy]) -> dict[int, Strategy]:
         """Registry id -> strategy of the materials ``strategy`` names; an unknown name, or
@@ -371,45 +378,6 @@ class ProductEnvironment(EnvironmentState):
         if not self.active:
             return emitter_pdf
         return dr.select(self.is_environment(emitter), strategy_pdf, emitter_pdf)
-
-    def product_nee(self, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carries_all,
-                    frac_e: float = 0.5, frac_b: float = 0.5, share: float | None = None,
-                    differentiable: bool = False):
-        """One sample of the environment (BSDF value x radiance / pdf) in the ``smooth``
-        lanes, with the lane's strategy (:meth:`sample_environment`).
-
-        In ``carries_all`` lanes (:meth:`carries_all`) it is one of the lane's equally
-        weighted samples: weight ``share``, its share of the lane's samples (default
-        ``frac_e``; a sample drawn in a BSDF sample's slot has ``frac_b``). Elsewhere it
-        is power-heuristic weighted against BSDF sampling with the strategies'
-        sample-count fractions ``frac_e``, ``frac_b``. ``carries_all`` may be the Python
-        value True (inside a branch that only such lanes enter): then only the
-        uncompensated walks are traced. ``differentiable``: see
-        :func:`~.estimators.environment_sample`."""
-        if not self.active:
-            return mi.Spectrum(0.0)
-        share = frac_e if share is None else share
-        smooth = mi.Bool(smooth)
-        # Packets without a smooth lane (sky, delta BSDFs) skip the walks.
-        d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
-                              true_fn=lambda c, v: self.sample_environment(c, v, use_product, carries_all),
-                              false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
-        if carries_all is True:  # a lane known to carry all: no MIS weight to trace
-            return environment_sample(scene, si, bsdf, ctx, d, pdf_e, smooth, lambda _: share, differentiable)
-        return environment_sample(
-            scene, si, bsdf, ctx, d, pdf_e, smooth,
-            lambda bsdf_pdf: dr.select(carries_all, share, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)),
-            differentiable)
-
-    def emitter_nee(self, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False,
-                    differentiable: bool = False):
-        """One sample of Mitsuba's emitter sampling, without the environment's
-        share where this object samples it (:meth:`product_nee`): :meth:`mitsuba_nee`.
-        In ``carries_all`` lanes no BSDF sample runs, so its weight is 1."""
-        return self.mitsuba_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b,
-                                self.active, weight_one=carries_all,
-                                differentiable=differentiable)
-
 
 class LaneLobe(NamedTuple):
     """The lobe proxy of each lane, in the two forms the product warp uses."""

@@ -29,24 +29,6 @@ def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
     return si
 
 
-def emitter_id(emitter: mi.Emitter | None) -> mi.UInt32 | None:
-    """The registry id of ``emitter`` as an opaque value, for :func:`is_emitter` (None for
-    no emitter).
-
-    Opaque, not a literal: Mitsuba loads a scene's objects in parallel by default, so
-    their registry ids change from run to run, and a literal id would make every kernel
-    that tests it new to Dr.Jit's kernel cache in each process (compiled again:
-    seconds of a first render's set-up)."""
-    if emitter is None:
-        return None
-    return dr.opaque(mi.UInt32, int(dr.reinterpret_array(mi.UInt32, mi.EmitterPtr(emitter))[0]))
-
-
-def is_emitter(emitter: mi.EmitterPtr, which: mi.UInt32) -> mi.Bool:
-    """Per-lane test: is ``emitter`` the emitter whose id (:func:`emitter_id`) is ``which``."""
-    return dr.reinterpret_array(mi.UInt32, emitter) == which
-
-
 class FirstHit(NamedTuple):
     """The camera ray's shading point."""
 
@@ -202,3 +184,65 @@ def dirac_sample_of_emitters(scene, hit: FirstHit, sample_1, sample_2) -> mi.Spe
     act &= bs.pdf > 0
     si_b, emitter, act = trace_to_emitters(scene, si.spawn_ray(si.to_world(bs.wo)), act)
     return dr.select(act, bsdf_weight * emitter.eval(si_b, act), 0.0)
+
+
+# Per-lane estimators of the per-scene states (environment.py): they call the state
+# and its strategies; the state never calls back.
+
+def mitsuba_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, sampled_here,
+                weight_one=False, differentiable: bool = False) -> mi.Spectrum:
+    """One sample of Mitsuba's emitter sampling in the ``smooth`` lanes, without the
+    environment where ``env`` (an :class:`~.environment.EnvironmentState`) samples it
+    (``sampled_here``: a per-lane mask, or True / False for every lane); not traced at
+    all when no lane can use it. ``weight_one`` lanes run no BSDF sample (weight 1);
+    ``differentiable``: see :func:`mitsuba_emitter_sample`."""
+    if not env.needs_emitter_sampling:
+        return mi.Spectrum(0.0)
+
+    def left_out(emitter):
+        if sampled_here is False or sampled_here is True:  # every lane alike
+            return env.is_environment(emitter) if sampled_here else mi.Bool(False)
+        return sampled_here & env.is_environment(emitter)
+
+    return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
+                                  frac_e, frac_b, weight_one=weight_one, differentiable=differentiable)
+
+
+def product_nee(env, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carries_all,
+                frac_e: float = 0.5, frac_b: float = 0.5, share: float | None = None,
+                differentiable: bool = False):
+    """One sample of the environment (BSDF value x radiance / pdf) in the ``smooth``
+    lanes, with the lane's strategy in ``env`` (a :class:`~.environment.ProductEnvironment`:
+    its ``sample_environment``).
+
+    In ``carries_all`` lanes (``env.carries_all``) it is one of the lane's equally
+    weighted samples: weight ``share``, its share of the lane's samples (default
+    ``frac_e``; a sample drawn in a BSDF sample's slot has ``frac_b``). Elsewhere it
+    is power-heuristic weighted against BSDF sampling with the strategies'
+    sample-count fractions ``frac_e``, ``frac_b``. ``carries_all`` may be the Python
+    value True (inside a branch that only such lanes enter): then only the
+    uncompensated walks are traced. ``differentiable``: see
+    :func:`environment_sample`."""
+    if not env.active:
+        return mi.Spectrum(0.0)
+    share = frac_e if share is None else share
+    smooth = mi.Bool(smooth)
+    # Packets without a smooth lane (sky, delta BSDFs) skip the walks.
+    d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
+                          true_fn=lambda c, v: env.sample_environment(c, v, use_product, carries_all),
+                          false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
+    if carries_all is True:  # a lane known to carry all: no MIS weight to trace
+        return environment_sample(scene, si, bsdf, ctx, d, pdf_e, smooth, lambda _: share, differentiable)
+    return environment_sample(
+        scene, si, bsdf, ctx, d, pdf_e, smooth,
+        lambda bsdf_pdf: dr.select(carries_all, share, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)),
+        differentiable)
+
+
+def emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False,
+                differentiable: bool = False):
+    """One sample of Mitsuba's emitter sampling, without the environment's
+    share where ``env`` samples it (:func:`product_nee`): :func:`mitsuba_nee`.
+    In ``carries_all`` lanes no BSDF sample runs, so its weight is 1."""
+    return mitsuba_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, env.active,
+                       weight_one=carries_all, differentiable=differentiable)

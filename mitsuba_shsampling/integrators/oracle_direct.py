@@ -10,7 +10,7 @@ from ..lobes.fit import luminance
 from ..warp.oracle import OracleWarp
 from .environment import EnvironmentState, SceneCache
 from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, environment_sample, first_hit,
-                         mis_weight)
+                         mis_weight, mitsuba_nee)
 from .options import OracleOptions, document_parameters
 
 
@@ -97,10 +97,10 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
 
         # ------ Environment: oracle samples; other emitters: Mitsuba's sampling ------
         for _ in range(n_e):
-            L += env.oracle_nee(scene, sampler.next_2d(oracle), si, bsdf, ctx, lobe, table, oracle,
+            L += oracle_nee(env, scene, sampler.next_2d(oracle), si, bsdf, ctx, lobe, table, oracle,
                                 frac_e, frac_b) / n_e
         for _ in range(n_e):
-            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b) / n_e
+            L += oracle_emitter_nee(env, scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b) / n_e
 
         # The emitter strategy of a BSDF-sampled direction: the oracle for the
         # environment in oracle lanes (W is the lane's: its pdf costs one BSDF
@@ -145,18 +145,22 @@ class OracleEnvironment(EnvironmentState):
                 self.warp = OracleWarp(pyramid, options.resolution, options.defensive_share)
                 self.needs_emitter_sampling = self.has_other_emitters
 
-    def oracle_nee(self, scene, u, si, bsdf, ctx, lobe, table, oracle, frac_e, frac_b):
-        """One oracle sample of the environment (BSDF value x radiance / pdf),
-        power-heuristic weighted against BSDF sampling with the strategies'
-        sample-count fractions (weight 1 without BSDF samples)."""
-        if self.warp is None:
-            return mi.Spectrum(0.0)
-        d, pdf = self.warp.sample(lobe, table, u, oracle)
-        return environment_sample(scene, si, bsdf, ctx, d, pdf, oracle,
-                                  lambda bsdf_pdf: mis_weight(pdf * frac_e, bsdf_pdf * frac_b))
 
-    def emitter_nee(self, scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b):
-        """One sample of Mitsuba's emitter sampling, without the environment's
-        share in oracle lanes (that belongs to :meth:`oracle_nee`): :meth:`mitsuba_nee`."""
-        return self.mitsuba_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b,
-                                oracle if self.warp is not None else False)
+# The oracle's per-lane estimators: they read its state (OracleEnvironment), which never calls them.
+
+def oracle_nee(env, scene, u, si, bsdf, ctx, lobe, table, oracle, frac_e, frac_b):
+    """One oracle sample of the environment (BSDF value x radiance / pdf),
+    power-heuristic weighted against BSDF sampling with the strategies'
+    sample-count fractions (weight 1 without BSDF samples)."""
+    if env.warp is None:
+        return mi.Spectrum(0.0)
+    d, pdf = env.warp.sample(lobe, table, u, oracle)
+    return environment_sample(scene, si, bsdf, ctx, d, pdf, oracle,
+                              lambda bsdf_pdf: mis_weight(pdf * frac_e, bsdf_pdf * frac_b))
+
+
+def oracle_emitter_nee(env, scene, sampler, si, bsdf, ctx, oracle, smooth, frac_e, frac_b):
+    """One sample of Mitsuba's emitter sampling, without the environment's
+    share in oracle lanes (that belongs to :func:`oracle_nee`): :func:`~.estimators.mitsuba_nee`."""
+    return mitsuba_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b,
+                       oracle if env.warp is not None else False)

@@ -12,7 +12,7 @@ differentiated. Per vertex:
   could have sampled it (the lane's environment strategy for the map, Mitsuba's
   emitter sampling for the others);
 - next-event estimation: one sample of the material's environment strategy
-  (:meth:`~.environment.ProductEnvironment.product_nee`; the product only at the first
+  (:func:`~.estimators.product_nee`; the product only at the first
   ``product_depth`` vertices) and one of Mitsuba's emitter sampling for the other emitters;
 - one BSDF sample that continues the path, and Russian roulette as Mitsuba's ``path``.
 
@@ -31,7 +31,7 @@ import dataclasses
 import drjit as dr
 import mitsuba as mi
 
-from .estimators import has_emitting_shapes, mis_weight, mitsuba_hit_pdf
+from .estimators import emitter_nee, has_emitting_shapes, mis_weight, mitsuba_hit_pdf, product_nee
 
 
 @dataclasses.dataclass(frozen=True)
@@ -163,11 +163,11 @@ def trace_paths(mode: dr.ADMode, scene: mi.Scene, env, sampler: mi.Sampler, ray:
         smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         lobe, use_product = env.lobe(si, smooth & (depth < product_depth))
         # The BSDF sample always runs (it continues the path): no lane carries all.
-        Lr_env = env.product_nee(scene, sampler.next_2d(active), si, bsdf, ctx, lobe=lobe, use_product=use_product,
-                                 smooth=smooth, carries_all=False, frac_e=FRACTION, frac_b=FRACTION,
-                                 differentiable=not primal)
-        Lr_em = env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, FRACTION, FRACTION,
-                                differentiable=not primal)
+        Lr_env = product_nee(env, scene, sampler.next_2d(active), si, bsdf, ctx, lobe=lobe,
+                             use_product=use_product, smooth=smooth, carries_all=False, frac_e=FRACTION,
+                             frac_b=FRACTION, differentiable=not primal)
+        Lr_em = emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, FRACTION, FRACTION,
+                            differentiable=not primal)
 
         # The BSDF sample that continues the path (detached).
         bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active_next)

@@ -7,7 +7,7 @@ import mitsuba as mi
 
 from .chooser import StrategyChooser
 from .environment import ProductEnvironment
-from .estimators import bsdf_sample_of_emitters, dirac_sample_of_emitters, first_hit
+from .estimators import bsdf_sample_of_emitters, dirac_sample_of_emitters, emitter_nee, first_hit, product_nee
 from .options import DirectOptions, document_parameters
 from .sharing import plan, planned_render, shared_planning
 
@@ -105,10 +105,11 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
         # ------ Environment: product (or environment-alone) sampling; other emitters: Mitsuba's ------
         for _ in range(n_e):
-            L += env.product_nee(scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe=lobe, use_product=use_product,
-                                 smooth=smooth, carries_all=carries_all, frac_e=frac_e, frac_b=frac_b) / n_e
+            L += product_nee(env, scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe=lobe,
+                             use_product=use_product, smooth=smooth, carries_all=carries_all,
+                             frac_e=frac_e, frac_b=frac_b) / n_e
         for _ in range(n_e):
-            L += env.emitter_nee(scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
+            L += emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
 
         # The emitter strategy of a BSDF-sampled direction: the lane's environment
         # strategy for the environment, Mitsuba's sampling for other emitters.
@@ -127,8 +128,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             L += dr.if_stmt(
                 args=(sample_1, sample_2), cond=carries_all,
                 # A strategy sample in a BSDF sample's slot: its share of the lane's samples is frac_b.
-                true_fn=lambda _, u: env.product_nee(scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product,
-                                                     smooth=smooth, carries_all=True, share=frac_b) / n_b,
+                true_fn=lambda _, u: product_nee(env, scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product,
+                                                 smooth=smooth, carries_all=True, share=frac_b) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b, env.needs_emitter_sampling) / n_b)
 

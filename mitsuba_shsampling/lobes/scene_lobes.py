@@ -184,7 +184,7 @@ class SceneLobes:
         self.bsdfs_with_lobes: dict[int, mi.BSDF] = {}
         #: Registry id -> (that id as an opaque value, the perturbed normal) of a frame-perturbing
         #: wrapper with a lobe. Opaque, not a literal, for the reason of
-        #: :func:`~mitsuba_shsampling.integrators.estimators.emitter_id`.
+        #: :func:`~mitsuba_shsampling.integrators.environment.emitter_id`.
         self._perturbed: dict[int, tuple[mi.UInt32, PerturbedNormal]] = {}
         #: Registry ids of the BSDFs whose lobe is a clamped cosine (:func:`is_cosine_lobe`).
         self.cosine_ids: set[int] = set()
