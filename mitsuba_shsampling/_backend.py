@@ -5,9 +5,9 @@ default) the first float ``dr.minimum``/``dr.maximum`` aborts the whole
 process ("LLVM ERROR: Cannot select ... fminimum"), so the check has to happen
 at import time, where it can still raise a Python exception.
 
-Variants: the SH warps are Dr.Jit kernels over RGB or mono radiance, so only
-JIT (``llvm_*``, ``cuda_*``) variants that are neither spectral nor polarized
-are supported. :func:`unsupported_variant_reason` is the one place that
+Variants: the SH warps are Dr.Jit kernels and the estimators carry unpolarized
+radiance, so the JIT (``llvm_*``, ``cuda_*``) variants that are not polarized
+are supported (RGB, mono and spectral). :func:`unsupported_variant_reason` is the one place that
 decides it (the plugins' registration and the command line both ask it).
 """
 
@@ -43,9 +43,10 @@ def unsupported_variant_reason(variant: str | None) -> str | None:
     if not variant.startswith(("llvm_", "cuda_")):
         return (f"variant '{variant}' is not supported: the SH warps are Dr.Jit kernels; "
                 f"use a JIT variant such as '{DEFAULT_VARIANT}'")
-    if "polarized" in variant or "spectral" in variant:
-        return (f"variant '{variant}' is not supported: the environment pyramid is built from "
-                f"RGB or mono radiance; use e.g. '{DEFAULT_VARIANT}'")
+    if "polarized" in variant:
+        return (f"variant '{variant}' is not supported: the product's estimators carry unpolarized "
+                f"radiance (a Stokes vector per lane would need Mueller-matrix BSDF lobes); use the "
+                f"same variant without '_polarized', e.g. '{variant.replace('_polarized', '')}'")
     return None
 
 

@@ -248,7 +248,7 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
         return scene.ray_test(si.spawn_ray(d_product), product_active)
 
     def envmap_eval():
-        return emitter.eval(environment_ray_target(d_product), product_active)
+        return emitter.eval(environment_ray_target(d_product, si.wavelengths), product_active)
 
     def product_code_fused():
         lane_lobe, use_product = env.lobe(si, smooth_lanes(si))

@@ -34,7 +34,7 @@ for variant in sys.argv[1:]:
 print(json.dumps(results))
 """
 
-UNSUPPORTED = ["scalar_rgb", "llvm_ad_spectral", "llvm_ad_mono_polarized"]
+UNSUPPORTED = ["scalar_rgb", "scalar_spectral", "llvm_ad_mono_polarized", "llvm_ad_spectral_polarized"]
 
 
 @pytest.fixture(scope="module")
@@ -59,11 +59,12 @@ def test_switching_back_to_a_supported_variant_registers_the_real_plugins(outcom
     assert outcomes["llvm_ad_rgb sh_direct"] == outcomes["llvm_ad_rgb sh_path"] == "loaded"
 
 
-@pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_mono", "cuda_ad_rgb"])
-def test_jit_rgb_and_mono_variants_are_supported(variant):
+@pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_mono", "llvm_ad_spectral", "cuda_ad_rgb",
+                                     "cuda_ad_spectral"])
+def test_jit_rgb_mono_and_spectral_variants_are_supported(variant):
     assert unsupported_variant_reason(variant) is None
 
 
-@pytest.mark.parametrize("variant", UNSUPPORTED + ["cuda_ad_spectral", "scalar_spectral"])
-def test_scalar_spectral_and_polarized_variants_are_not(variant):
+@pytest.mark.parametrize("variant", UNSUPPORTED + ["cuda_ad_rgb_polarized", "scalar_mono"])
+def test_scalar_and_polarized_variants_are_not(variant):
     assert "not supported" in unsupported_variant_reason(variant)

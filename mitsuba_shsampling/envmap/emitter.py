@@ -31,15 +31,32 @@ def envmap_description(emitter: mi.Emitter, filename: str | None = None,
     if filename is not None:
         desc["filename"] = os.path.abspath(filename)
     else:
-        # `data` carries one wrap-around halo column on each side.
-        desc["bitmap"] = mi.Bitmap(np.ascontiguousarray(np.array(params["data"])[:, 1:-1], dtype=np.float32))
+        # `data` carries one wrap-around halo column on each side. Spectral data is no RGB
+        # image: a black one of its size stands in (envmap_like copies the data itself).
+        texels = np.array(params["data"])[:, 1:-1]
+        if mi.is_spectral:
+            texels = np.zeros(texels.shape[:2] + (3,))
+        desc["bitmap"] = mi.Bitmap(np.ascontiguousarray(texels, dtype=np.float32))
     return desc
 
 
 def compensated_copy(emitter: mi.Emitter) -> mi.Emitter:
     """An ``envmap`` with ``emitter``'s texels, ``to_world`` and ``scale``, sampling
     with MIS compensation. Its radiance is ``emitter``'s."""
-    return mi.load_dict(envmap_description(emitter, mis_compensation=True))
+    return envmap_like(emitter, mis_compensation=True)
+
+
+def envmap_like(emitter: mi.Emitter, filename: str | None = None, mis_compensation: bool = False) -> mi.Emitter:
+    """The ``envmap`` of :func:`envmap_description`. In spectral variants the emitter's
+    data holds the spectral model's coefficients, not RGB: a copy of its own texels is
+    loaded at their size and then given the data as it is (which rebuilds its sampling)."""
+    copy = mi.load_dict(envmap_description(emitter, filename, mis_compensation))
+    if filename is None and mi.is_spectral:
+        params = mi.traverse(copy)
+        data = mi.traverse(emitter)["data"]
+        params["data"] = type(data)(data)
+        params.update()
+    return copy
 
 
 class EmitterDirections:

@@ -465,9 +465,10 @@ class EnvPyramid:
             raise TypeError(f"EnvPyramid needs an 'envmap' emitter, got {name}")
         params = mi.traverse(emitter)
         data = params["data"].numpy()  # (H, W + 2, C): one halo column each side
-        if data.ndim != 3 or data.shape[2] not in (1, 3):
+        channels = (4,) if mi.is_spectral else (1, 3)
+        if data.ndim != 3 or data.shape[2] not in channels:
             raise TypeError(f"EnvPyramid: unsupported envmap data of shape {data.shape} "
-                            "(expected (H, W+2, 1 or 3); spectral variants are not supported)")
+                            f"(expected (H, W+2, {' or '.join(map(str, channels))}) in {mi.variant()})")
         start = time.perf_counter()
         to_world = mi.AffineTransform4f(params["to_world"])
         _check_to_world(to_world)  # before the emitter's data is touched
@@ -504,13 +505,24 @@ class EnvPyramid:
 
     @staticmethod
     def _texel_luminance(texels: np.ndarray) -> np.ndarray:
-        """(H, W, 1|3) texels -> (H, W) float32 luminance, row block by row block
-        (a contiguous RGB copy of an 8k map would be 400 MB)."""
+        """(H, W, 1|3|4) texels -> (H, W) float32 luminance, row block by row block
+        (a contiguous RGB copy of an 8k map would be 400 MB).
+
+        Four channels are a spectral ``envmap``'s: the coefficients of the sRGB spectral
+        upsampling model and a scale. Their weight is what Mitsuba's own envmap sampling
+        uses in spectral variants, the model's mean over the wavelengths times the scale,
+        so that the product's target and the environment strategies' match there too."""
         height = texels.shape[0]
         out = np.empty(texels.shape[:2], dtype=np.float32)
         for y0 in range(0, height, _CHUNK):
             block = texels[y0:y0 + _CHUNK].astype(np.float64)
-            out[y0:y0 + _CHUNK] = block[..., 0] if block.shape[2] == 1 else block @ LUMINANCE_WEIGHTS
+            if block.shape[2] == 4:
+                coefficients = block[..., :3].reshape(-1, 3).astype(np.float32)
+                mean = mi.srgb_model_mean(mi.Vector3f(coefficients[:, 0], coefficients[:, 1], coefficients[:, 2]))
+                out[y0:y0 + _CHUNK] = np.asarray(mean.numpy(), dtype=np.float64).reshape(block.shape[:2]) \
+                    * block[..., 3]
+            else:
+                out[y0:y0 + _CHUNK] = block[..., 0] if block.shape[2] == 1 else block @ LUMINANCE_WEIGHTS
         return out
 
     def _build(self, luminance: np.ndarray, scale: float, to_world: mi.AffineTransform4f,

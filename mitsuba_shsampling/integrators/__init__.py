@@ -6,7 +6,7 @@ callback that calls it again after every ``mi.set_variant``, so ``sh_direct``,
 ``sh_path``, ``sh_prb`` and ``oracle_direct`` are always known to ``mi.load_dict`` and the
 XML parser.
 
-Under a variant the plugins cannot run on (scalar, spectral, polarized), all
+Under a variant the plugins cannot run on (scalar, polarized), all
 names are registered to a stub that raises
 :class:`~mitsuba_shsampling.VariantError` with the reason when a scene or
 dict instantiates it, instead of Mitsuba's generic "plugin not found".

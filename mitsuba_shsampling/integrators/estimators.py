@@ -22,10 +22,14 @@ def mis_weight(pdf_a, pdf_b):
     return mi.ad.integrators.common.mis_weight(pdf_a, pdf_b)
 
 
-def environment_ray_target(d: mi.Vector3f) -> mi.SurfaceInteraction3f:
-    """An interaction that makes ``envmap.eval`` return the radiance arriving from ``d``."""
+def environment_ray_target(d: mi.Vector3f, wavelengths=None) -> mi.SurfaceInteraction3f:
+    """An interaction that makes ``envmap.eval`` return the radiance arriving from ``d``, at
+    ``wavelengths`` (the lane's, in spectral variants: the emitter evaluates its spectrum
+    there; ignored in RGB and mono ones)."""
     si = dr.zeros(mi.SurfaceInteraction3f)
     si.wi = -d
+    if wavelengths is not None and mi.is_spectral:
+        si.wavelengths = wavelengths
     return si
 
 
@@ -75,7 +79,7 @@ def environment_sample(scene, si, bsdf, ctx, d: mi.Vector3f, pdf: mi.Float, acti
         # whatever the visibility: no shadow ray. Mitsuba's `direct` traces it first.
         act &= dr.any(bsdf_val != 0.0)
         act &= ~scene.ray_test(si.spawn_ray(d), act)
-        radiance = scene.environment().eval(environment_ray_target(d), act)
+        radiance = scene.environment().eval(environment_ray_target(d, si.wavelengths), act)
         return dr.select(act, bsdf_val * radiance * (weight(dr.detach(bsdf_pdf)) / pdf), 0.0)
 
 

@@ -116,7 +116,7 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
 
     wo = si.to_local(d)
     value, p_bsdf = bsdf.eval_pdf(ctx, si, wo)
-    radiance = env.emitter.eval(environment_ray_target(d))
+    radiance = env.emitter.eval(environment_ray_target(d, si.wavelengths))
     visible = ~env.scene.ray_test(si.spawn_ray(d))
     # Per colour channel: the report's MSE averages the channels' squared errors
     # (report.metrics), and a strategy can be good in luminance and poor in blue

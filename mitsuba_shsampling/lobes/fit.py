@@ -111,6 +111,15 @@ def mirror_direction(wi: np.ndarray) -> np.ndarray:
     return np.array([-wi[0], -wi[1], wi[2]])
 
 
+def fit_wavelengths():
+    """In spectral variants, the wavelengths at which a lobe is tabulated: one fixed,
+    stratified set drawn as Mitsuba's sensors draw theirs (``sample_rgb_spectrum``), so
+    that the lobe's scalar weight (:func:`luminance`: their mean) spans the visible range
+    and is the same in every process."""
+    wavelengths, _ = mi.sample_rgb_spectrum(mi.sample_shifted(mi.Float(0.125)))
+    return wavelengths
+
+
 def luminance(value) -> mi.Float:
     """Scalar weight of a BSDF value: luminance in RGB variants, the value otherwise."""
     if mi.is_rgb:
@@ -166,6 +175,8 @@ def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.
         return dr.gather(mi.Vector3f, mi.Vector3f(table[:, 0], table[:, 1], table[:, 2]), index)
 
     si = dr.zeros(mi.SurfaceInteraction3f, k_count * m_count * u_count)
+    if mi.is_spectral:
+        si.wavelengths = fit_wavelengths()
     si.t = 0.0
     si.n = mi.Normal3f(0.0, 0.0, flip)
     si.sh_frame = mi.Frame3f(mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0),

@@ -27,7 +27,7 @@ import numpy as np
 
 import mitsuba as mi
 
-from ..envmap.emitter import envmap_description
+from ..envmap.emitter import envmap_like
 from ..scenes import SceneError, scene_envmap
 from ..traversal import readable_parameters
 
@@ -94,7 +94,7 @@ def with_environment(scene: mi.Scene, filename: str | None = None,
     env = scene_envmap(scene)
     if env is None:
         raise SceneError("the scene has no envmap emitter to replace or compensate")
-    desc = envmap_description(env, filename, mis_compensation)
+    replacement = envmap_like(env, filename, mis_compensation)
     # Emitters keep their order (the new envmap takes the old one's place), so that a seed
     # draws the same emitter choices as in the original scene.
     objects = {"type": "scene"}
@@ -102,7 +102,7 @@ def with_environment(scene: mi.Scene, filename: str | None = None,
         objects["integrator"] = scene.integrator()
     for i, emitter in enumerate(scene.emitters()):
         if emitter is env:
-            objects[f"emitter_{i}"] = mi.load_dict(desc)
+            objects[f"emitter_{i}"] = replacement
         elif emitter.get_shape() is None:
             objects[f"emitter_{i}"] = emitter
     for i, shape in enumerate(scene.shapes()):
