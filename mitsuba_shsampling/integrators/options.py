@@ -233,6 +233,7 @@ class DirectOptions(ProductOptions):
         "the number of Mitsuba emitter samples for any other emitters."))
     bsdf_samples: int = dataclasses.field(default=1, metadata=_doc(
         "BSDF samples per shading point."))
+
     def _check_ranges(self) -> None:
         super()._check_ranges()
         self._check_sample_counts()
