@@ -16,6 +16,7 @@ LLVM_VERSION = check_llvm_backend()
 import mitsuba as mi  # noqa: E402
 
 from .sh.basis import sh_eval  # noqa: E402
+from .frozen import freeze  # noqa: E402
 from .integrators import register  # noqa: E402
 from .integrators import _register_for_new_variant  # noqa: E402
 
@@ -24,4 +25,4 @@ if mi.variant() is not None:
 mi.detail.add_variant_callback(_register_for_new_variant)
 
 __version__ = "0.1.0"
-__all__ = ["BackendError", "LLVM_VERSION", "VariantError", "register", "sh_eval"]
+__all__ = ["BackendError", "LLVM_VERSION", "VariantError", "freeze", "register", "sh_eval"]

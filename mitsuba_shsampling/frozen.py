@@ -124,3 +124,41 @@ class FrozenPass:
                 if collecting:
                     gc.enable()
         return mi.render(self.scene, sensor=self.sensor, integrator=self.integrator, spp=self.spp, seed=seed)
+
+
+class Frozen:
+    """``dr.freeze(function, **options)`` with Python's cycle collector paused during each
+    call (a recording or a replay): what :func:`freeze` returns. ``n_recordings`` and
+    the frozen function's other attributes are the wrapped one's."""
+
+    def __init__(self, function, **options):
+        self._frozen = dr.freeze(function, **options)
+
+    def __call__(self, *args, **kwargs):
+        collecting = gc.isenabled()
+        gc.disable()  # a collection during a recording can free arrays it cannot record
+        try:
+            return self._frozen(*args, **kwargs)
+        finally:
+            if collecting:
+                gc.enable()
+
+    def __getattr__(self, name):
+        return getattr(self._frozen, name)
+
+
+def freeze(function=None, **options):
+    """``dr.freeze`` for functions that render with this package's integrators (a frozen
+    optimisation step of ``sh_prb``, a frozen preview of ``sh_direct``): the same
+    recording and replay, with Python's cycle collector paused during each call.
+
+    Why: a collection during a recording can free an array made before it, which Dr.Jit
+    cannot record (the process aborts); a pass of these integrators leaves such cycles
+    behind. The integrators refuse a recording while the collector runs, with an error
+    that names this function. Call ``integrator.plan(scene)`` before the first call and
+    again, outside the frozen function, to refresh the sampling state as parameters move
+    (a replay runs no Python, so it renders with the state it was recorded with, which
+    keeps images and gradients unbiased). Use as ``freeze(step)`` or ``@freeze``."""
+    if function is None:
+        return lambda f: Frozen(f, **options)
+    return Frozen(function, **options)

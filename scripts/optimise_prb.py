@@ -13,6 +13,11 @@ roughness error; the RMSE of the texture, each texel weighted by how much the im
 on it (most of the ground is seen far away, where its texels barely matter).
 
     python scripts/optimise_prb.py --seconds 40 --rebuild-intervals 16 --json optimise_prb.json --plot optimise_prb.png
+
+With ``--freeze`` every method's step (render, loss, backward) is a frozen function
+(``mitsuba_shsampling.freeze``: ``dr.freeze`` with the cycle collector paused), recorded
+once and replayed; ``sh_prb`` then refreshes its sampling state outside it, with
+``integrator.plan(scene)`` every ``rebuild_interval`` steps (timed with the step).
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ def main() -> None:
                         help="further sh_prb runs with these rebuild_interval values")
     parser.add_argument("--json", default=None)
     parser.add_argument("--plot", default=None, help="PNG of the loss and the errors against seconds")
+    parser.add_argument("--freeze", action="store_true", help="freeze each method's step (see above)")
     args = parser.parse_args()
 
     mi.set_variant("llvm_ad_rgb")  # registers the plugins (prb_studio imported the package)
@@ -71,12 +77,13 @@ def main() -> None:
         scene = studio.load_studio(args.res, mis_compensation)
         params = mi.traverse(scene)
         studio.set_start(params)
-        run = dict(scene=scene, params=params, integrator=mi.load_dict(plugin), step=0)
+        run = dict(scene=scene, params=params, integrator=mi.load_dict(plugin), step=0,
+                   frozen=frozen_step(args.spp) if args.freeze else None)
         # One step outside the clock compiles the method's kernels; then back to the start.
         run["opt"] = optimiser(params, args.lr)
         step(run, target, args.spp, seed=10_000)
         studio.set_start(params)
-        run.update(opt=optimiser(params, args.lr), step=0, clock=0.0, builds=0, history=[],
+        run.update(opt=optimiser(params, args.lr), step=0, clock=0.0, builds=0, history=[], step_times=[],
                    state=sampling_state(run))
         runs[name] = run
 
@@ -100,7 +107,8 @@ def main() -> None:
                 continue
             start = time.perf_counter()
             step(run, target, args.spp, seed=args.seed + run["step"])
-            run["clock"] += time.perf_counter() - start
+            run["step_times"].append(time.perf_counter() - start)
+            run["clock"] += run["step_times"][-1]
             state = sampling_state(run)
             run["builds"] += state is not run["state"]
             run["state"] = state
@@ -110,16 +118,18 @@ def main() -> None:
     print(f"material studio {args.res} px wide, {args.spp} spp per step, Adam lr {args.lr}, "
           f"{args.seconds:.0f} s per method; scores: path {args.eval_spp} spp against the same render of the true "
           "parameters")
-    print(f"{'method':34s} {'steps':>6s} {'s/step':>7s} {'builds':>6s} {'loss start':>11s} {'end':>10s} "
+    print(f"{'method':34s} {'steps':>6s} {'s/step':>7s} {'median':>7s} {'builds':>6s} {'loss start':>11s} {'end':>10s} "
           f"{'mean over last half':>19s} {'roughness':>10s} {'texture RMSE':>12s}")
     records = {}
     for name, run in runs.items():
         first, last = run["history"][0], run["history"][-1]
         late = [h["loss"] for h in run["history"] if h["seconds"] >= args.seconds / 2]
-        print(f"{name:34s} {run['step']:6d} {run['clock'] / run['step']:7.3f} {run['builds']:6d} "
+        print(f"{name:34s} {run['step']:6d} {run['clock'] / run['step']:7.3f} {np.median(run['step_times']):7.3f} "
+              f"{run['builds']:6d} "
               f"{first['loss']:11.4g} {last['loss']:10.4g} {np.mean(late):19.4g} "
               f"{last['roughness']:10.4f} {last['texture_rmse']:12.4f}")
         records[name] = {"steps": run["step"], "seconds": run["clock"], "state_builds": run["builds"],
+                         "median_step_s": float(np.median(run["step_times"])),
                          "history": run["history"]}
     records["settings"] = vars(args)
     if args.json:
@@ -132,11 +142,18 @@ def main() -> None:
 
 def step(run, target, spp, seed):
     """One Adam step on the L2 loss of one differentiable render."""
-    params, opt = run["params"], run["opt"]
+    params, opt, integrator = run["params"], run["opt"], run["integrator"]
     params.update(opt)
-    image = mi.render(run["scene"], params, integrator=run["integrator"], spp=spp,
-                      seed=2 * seed, seed_grad=2 * seed + 1)
-    dr.backward(dr.mean(dr.square(image - target), axis=None))
+    if run["frozen"] is not None:
+        # The sampling state is refreshed on the host, outside the recording (a replay runs no Python).
+        interval = getattr(getattr(integrator, "options", None), "rebuild_interval", None)
+        if interval is not None and run["step"] % interval == 0:
+            integrator.plan(run["scene"])
+        run["frozen"](run["scene"], params, integrator, dr.opaque(mi.UInt32, 2 * seed), target)
+    else:
+        image = mi.render(run["scene"], params, integrator=integrator, spp=spp,
+                          seed=2 * seed, seed_grad=2 * seed + 1)
+        dr.backward(dr.mean(dr.square(image - target), axis=None))
     opt.step()
     opt[studio.ROUGHNESS] = dr.clip(opt[studio.ROUGHNESS], 0.01, 1.0)
     opt[studio.TEXTURE] = dr.clip(opt[studio.TEXTURE], 0.0, 1.0)
@@ -159,6 +176,19 @@ def texel_sensitivity(scene, spp):
     dr.disable_grad(params[studio.TEXTURE])
     params.update()
     return weight
+
+
+def frozen_step(spp):
+    """The render, loss and backward pass of :func:`step` as one frozen function."""
+    import mitsuba_shsampling
+
+    def render_loss_backward(scene, params, integrator, seed, target):
+        image = mi.render(scene, params, integrator=integrator, spp=spp, seed=seed)
+        loss = dr.mean(dr.square(image - target), axis=None)
+        dr.backward(loss)
+        return loss
+
+    return mitsuba_shsampling.freeze(render_loss_backward)
 
 
 def optimiser(params, lr):

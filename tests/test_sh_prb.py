@@ -22,6 +22,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from test_integrators import assert_unbiased, make_scene  # noqa: E402
 
+import mitsuba_shsampling  # noqa: E402
 from mitsuba_shsampling.integrators import PLUGIN_NAMES, register  # noqa: E402
 from mitsuba_shsampling.integrators.options import OptionError, PRBOptions  # noqa: E402
 
@@ -290,3 +291,99 @@ def test_the_replay_follows_the_primal_paths_so_the_scale_derivative_is_the_imag
     derivative = integrator.render_forward(scene, params, seed=7, spp=4).numpy()
     assert image.mean() > 0
     np.testing.assert_allclose(derivative, image / 2.0, rtol=1e-4, atol=1e-6)
+
+
+# ------------------------------------------------------------ frozen optimisation steps
+
+def optimisation(envmaps_dir, integrator, steps, freeze, refresh_at=()):
+    """Adam on the conductor's roughness towards a target rendered by ``path``; the step
+    (render, loss, backward) traced or ``dr.freeze``-d. Before the first step and at each of
+    ``refresh_at`` the integrator plans on the host (``integrator.plan``). Returns the
+    roughness after each step, the frozen function's recordings so far after each step (0s
+    when traced) and the sampling state each step rendered with."""
+    scene = gradient_scene(envmaps_dir)
+    target = mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": MAX_DEPTH}), spp=64)
+    params = mi.traverse(scene)
+    opt = mi.ad.Adam(lr=0.05)
+    opt[CONDUCTOR_ALPHA] = mi.Float(0.6)
+    params.update(opt)
+
+    def step(scene, params, integrator, seed, target):
+        image = mi.render(scene, params, integrator=integrator, spp=4, seed=seed)
+        loss = dr.mean(dr.square(image - target), axis=None)
+        dr.backward(loss)
+        return loss
+
+    run = mitsuba_shsampling.freeze(step) if freeze else step
+    integrator.plan(scene)
+    trajectory, states, recordings = [], [], []
+    for k in range(steps):
+        if k in refresh_at:
+            integrator.plan(scene)
+        dr.eval(run(scene, params, integrator, dr.opaque(mi.UInt32, 2 * k), target))
+        states.append(integrator.scenes.get(scene, stale_ok=True))
+        recordings.append(run.n_recordings if freeze else 0)
+        opt.step()
+        opt[CONDUCTOR_ALPHA] = dr.clip(opt[CONDUCTOR_ALPHA], 0.01, 1.0)
+        params.update(opt)
+        trajectory.append(float(opt[CONDUCTOR_ALPHA][0]))
+    return np.array(trajectory), recordings, states
+
+
+def test_a_frozen_optimisation_step_replays_the_traced_steps_trajectory(envmaps_dir):
+    """Planned before the loop, the step records once (Dr.Jit's second recording makes the
+    changed literals opaque) and replays the traced step's arithmetic: its sampling state
+    stays the one planned, as the traced step's does within rebuild_interval."""
+    traced, _, _ = optimisation(envmaps_dir, sh_prb(rebuild_interval=1000), 8, freeze=False)
+    frozen, recordings, states = optimisation(envmaps_dir, sh_prb(rebuild_interval=1000), 8, freeze=True)
+    assert recordings[-1] <= 2
+    assert traced[-1] < 0.55  # it moved
+    np.testing.assert_allclose(frozen, traced, rtol=1e-4)
+    assert all(state is states[0] for state in states)
+
+
+def test_planning_again_outside_the_frozen_step_rebuilds_its_state_and_records_again(envmaps_dir):
+    frozen, recordings, states = optimisation(envmaps_dir, sh_prb(), 6, freeze=True, refresh_at=(3,))
+    assert states[0] is states[1] is states[2]  # a replay runs no Python: nothing is rebuilt
+    assert states[3] is not states[2] and states[3] is states[5]
+    assert recordings[2] == recordings[1] and recordings[3] > recordings[2]  # a new state is recorded again
+    assert frozen[-1] < 0.6
+
+
+def test_a_frozen_step_before_any_plan_is_a_clear_error(envmaps_dir):
+    from mitsuba_shsampling.integrators.environment import FrozenBeforePlanError
+
+    scene = gradient_scene(envmaps_dir)
+    integrator = sh_prb()
+
+    @mitsuba_shsampling.freeze
+    def step(scene, integrator, seed):
+        return mi.render(scene, integrator=integrator, spp=1, seed=seed)
+
+    with pytest.raises(RuntimeError) as caught:
+        step(scene, integrator, dr.opaque(mi.UInt32, 0))
+    chain, error = [], caught.value
+    while error is not None:
+        chain.append(error)
+        error = error.__cause__
+    assert any(isinstance(e, FrozenBeforePlanError) and "integrator.plan(scene)" in str(e) for e in chain)
+
+
+def test_dr_freeze_with_the_cycle_collector_running_is_a_clear_error_not_an_abort(envmaps_dir):
+    from mitsuba_shsampling.integrators.sharing import FrozenWithCollectorError
+
+    scene = gradient_scene(envmaps_dir)
+    integrator = sh_prb()
+    integrator.plan(scene)
+
+    @dr.freeze
+    def step(scene, integrator, seed):
+        return mi.render(scene, integrator=integrator, spp=1, seed=seed)
+
+    with pytest.raises(RuntimeError) as caught:
+        step(scene, integrator, dr.opaque(mi.UInt32, 0))
+    chain, error = [], caught.value
+    while error is not None:
+        chain.append(error)
+        error = error.__cause__
+    assert any(isinstance(e, FrozenWithCollectorError) and "mitsuba_shsampling.freeze" in str(e) for e in chain)

@@ -388,6 +388,10 @@ class LaneLobe(NamedTuple):
     """The same proxy in closed form, for the levels below them (see ``proxy_depth``)."""
 
 
+class FrozenBeforePlanError(RuntimeError):
+    """A ``dr.freeze`` recording reached an integrator that has no state for its scene yet."""
+
+
 class SceneCache:
     """Builds a per-scene state with ``build(scene)`` (:class:`ProductEnvironment`,
     the oracle's state), and again whenever the scene's inputs change.
@@ -414,7 +418,18 @@ class SceneCache:
 
     def get(self, scene: mi.Scene, stale_ok: bool = False):
         """The state ``build`` made for ``scene``, built again when its inputs changed;
-        with ``stale_ok`` only for another scene (the inputs are not even read)."""
+        with ``stale_ok`` only for another scene (the inputs are not even read).
+
+        While ``dr.freeze`` records a function, the state made before is used as it is
+        (a recording can neither read arrays on the host nor build), and a scene without
+        one is a :class:`FrozenBeforePlanError`."""
+        if dr.flag(dr.JitFlag.FreezingScope):
+            if self._scene is not scene:
+                raise FrozenBeforePlanError(
+                    "the integrator's per-scene state (environment pyramid, lobe fits, plan) is built on "
+                    "the host, which a dr.freeze recording cannot do: call integrator.plan(scene) before "
+                    "the frozen function's first call, and again outside it to refresh the state")
+            return self._env
         if self._scene is not scene or (not stale_ok and self._identity(self._inputs()) != self._key):
             self._env = self._build(scene)
             self._scene = scene

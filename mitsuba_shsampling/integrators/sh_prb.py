@@ -119,7 +119,15 @@ class SHPRBIntegrator(RBIntegrator):
         return state
 
     render = planned_render(RBIntegrator)
-    plan = plan
+
+    def plan(self, scene, sensor=0):
+        """The plan for ``scene`` (see ``sh_direct``'s), made on the parameters as they are
+        now: where a render rebuilds the state at most every ``rebuild_interval`` renders,
+        this call rebuilds it whenever the parameters changed since it was built. It is how
+        a frozen optimisation step (``mitsuba_shsampling.freeze``), whose replays run no
+        Python, refreshes its sampling state: call it outside the frozen function."""
+        self._renders_since_build = self.options.rebuild_interval
+        return plan(self, scene, sensor)
 
     def choice(self, scene):
         """The strategy chosen for each material of ``scene`` (see ``sh_direct``)."""

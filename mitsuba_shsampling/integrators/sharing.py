@@ -18,10 +18,14 @@ pyramid, the lobe fits, the cosine tables) are kept by their content instead
 
 from __future__ import annotations
 
+import gc
 import weakref
 from typing import Callable
 
+import drjit as dr
 import mitsuba as mi
+
+from ..frozen import held_inputs
 
 from .chooser import StrategyChooser
 from .environment import SceneCache
@@ -63,9 +67,42 @@ def plan(self, scene: mi.Scene, sensor=0):
     strategy set by ``strategy``).
 
     The ``plan`` method of the plugins that make one (a function, not a mixin: a
-    Mitsuba integrator class takes one base)."""
-    self.prepare_scene(scene, sensor)
+    Mitsuba integrator class takes one base).
+
+    It also runs Python's cycle collector: a frozen function (``mitsuba_shsampling.freeze``)
+    pauses it, and while it records, the objects of a dropped scene that only the collector
+    frees would still be registered with Dr.Jit, whose virtual calls would then find
+    instances that are no inputs of the recording."""
+    prepared(self, scene, sensor)
+    if not dr.flag(dr.JitFlag.FreezingScope):
+        gc.collect()
     return self.choice(scene)
+
+
+class FrozenWithCollectorError(RuntimeError):
+    """A ``dr.freeze`` recording reached an integrator while Python's cycle collector runs."""
+
+
+def prepared(integrator, scene: mi.Scene, sensor=0) -> None:
+    """``integrator.prepare_scene`` on the host (state and plan), then the state's arrays
+    and objects as the integrator's ``frozen_inputs``.
+
+    Why: Dr.Jit traverses a Python integrator's attributes when a ``dr.freeze``-d
+    function takes it as an input (a user's frozen optimisation step), and the state is
+    held by plain Python objects that it does not traverse; through this list the
+    recording reads the state's arrays as inputs. Inside a recording nothing is
+    prepared: the state made before is used as it is (:meth:`.SceneCache.get`)."""
+    if dr.flag(dr.JitFlag.FreezingScope):
+        if gc.isenabled():
+            raise FrozenWithCollectorError(
+                f"{type(integrator).__name__}: a dr.freeze recording with Python's cycle collector running "
+                "can abort the process (a collection may free arrays made before the recording, which Dr.Jit "
+                "cannot record): freeze the function with mitsuba_shsampling.freeze, which pauses the "
+                "collector during each call, or call gc.disable() around it")
+        integrator.scenes.get(scene)  # the state made before, or FrozenBeforePlanError
+        return
+    state = integrator.prepare_scene(scene, sensor)
+    integrator.frozen_inputs = held_inputs(state)
 
 
 def planned_render(base) -> Callable:
@@ -74,7 +111,7 @@ def planned_render(base) -> Callable:
     planner (``StrategyChooser.piloting``) renders as the plugin is set, without planning."""
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if not self.chooser.piloting:
-            self.prepare_scene(scene, sensor)
+            prepared(self, scene, sensor)
         return base.render(self, scene, sensor, seed, spp, develop, evaluate)
 
     return render
