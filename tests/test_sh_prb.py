@@ -350,13 +350,9 @@ def test_planning_again_outside_the_frozen_step_rebuilds_its_state_and_records_a
     assert frozen[-1] < 0.6
 
 
-def test_a_frozen_step_before_any_plan_is_a_clear_error(envmaps_dir):
-    from mitsuba_shsampling.integrators.environment import FrozenBeforePlanError
-
-    scene = gradient_scene(envmaps_dir)
-    integrator = sh_prb()
-
-    @mitsuba_shsampling.freeze
+def first_frozen_render_error(freeze, scene, integrator):
+    """The chain of errors (outermost first) that a one-pass render frozen by ``freeze`` raises."""
+    @freeze
     def step(scene, integrator, seed):
         return mi.render(scene, integrator=integrator, spp=1, seed=seed)
 
@@ -366,6 +362,13 @@ def test_a_frozen_step_before_any_plan_is_a_clear_error(envmaps_dir):
     while error is not None:
         chain.append(error)
         error = error.__cause__
+    return chain
+
+
+def test_a_frozen_step_before_any_plan_is_a_clear_error(envmaps_dir):
+    from mitsuba_shsampling.integrators.environment import FrozenBeforePlanError
+
+    chain = first_frozen_render_error(mitsuba_shsampling.freeze, gradient_scene(envmaps_dir), sh_prb())
     assert any(isinstance(e, FrozenBeforePlanError) and "integrator.plan(scene)" in str(e) for e in chain)
 
 
@@ -375,15 +378,5 @@ def test_dr_freeze_with_the_cycle_collector_running_is_a_clear_error_not_an_abor
     scene = gradient_scene(envmaps_dir)
     integrator = sh_prb()
     integrator.plan(scene)
-
-    @dr.freeze
-    def step(scene, integrator, seed):
-        return mi.render(scene, integrator=integrator, spp=1, seed=seed)
-
-    with pytest.raises(RuntimeError) as caught:
-        step(scene, integrator, dr.opaque(mi.UInt32, 0))
-    chain, error = [], caught.value
-    while error is not None:
-        chain.append(error)
-        error = error.__cause__
+    chain = first_frozen_render_error(dr.freeze, scene, integrator)
     assert any(isinstance(e, FrozenWithCollectorError) and "mitsuba_shsampling.freeze" in str(e) for e in chain)
