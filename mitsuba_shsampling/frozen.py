@@ -33,12 +33,26 @@ How a pass is frozen (Dr.Jit's ``freeze`` rules, ``docs/freeze.rst``):
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import warnings
 
 import drjit as dr
 import mitsuba as mi
+
+
+@contextlib.contextmanager
+def collector_paused():
+    """Python's cycle collector off for the block (as it was after): a collection during a
+    ``dr.freeze`` recording can free arrays made before it, which Dr.Jit cannot record."""
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if collecting:
+            gc.enable()
 
 
 def held_inputs(state) -> list:
@@ -109,20 +123,16 @@ class FrozenPass:
         prepare = getattr(self.integrator, "prepare_scene", None)
         state = prepare(self.scene, self.sensor) if prepare is not None else None
         if self.frozen:
-            collecting = gc.isenabled()
-            gc.disable()
-            try:
-                return self._function(self.scene, self.sensor, self.integrator, dr.opaque(mi.UInt32, seed),
-                                      self.spp, state, held_inputs(state))
-            except RuntimeError as err:
-                while err.__cause__ is not None:  # the innermost error says why
-                    err = err.__cause__
-                self.frozen, self.failure = False, (str(err).strip().splitlines() or [type(err).__name__])[0]
-                warnings.warn(f"{type(self.integrator).__name__}: cannot freeze the render pass "
-                              f"({self.failure}); rendering unfrozen", RuntimeWarning, stacklevel=2)
-            finally:
-                if collecting:
-                    gc.enable()
+            with collector_paused():
+                try:
+                    return self._function(self.scene, self.sensor, self.integrator, dr.opaque(mi.UInt32, seed),
+                                          self.spp, state, held_inputs(state))
+                except RuntimeError as err:
+                    while err.__cause__ is not None:  # the innermost error says why
+                        err = err.__cause__
+                    self.frozen, self.failure = False, (str(err).strip().splitlines() or [type(err).__name__])[0]
+                    warnings.warn(f"{type(self.integrator).__name__}: cannot freeze the render pass "
+                                  f"({self.failure}); rendering unfrozen", RuntimeWarning, stacklevel=2)
         return mi.render(self.scene, sensor=self.sensor, integrator=self.integrator, spp=self.spp, seed=seed)
 
 
@@ -135,13 +145,8 @@ class Frozen:
         self._frozen = dr.freeze(function, **options)
 
     def __call__(self, *args, **kwargs):
-        collecting = gc.isenabled()
-        gc.disable()  # a collection during a recording can free arrays it cannot record
-        try:
+        with collector_paused():
             return self._frozen(*args, **kwargs)
-        finally:
-            if collecting:
-                gc.enable()
 
     def __getattr__(self, name):
         return getattr(self._frozen, name)

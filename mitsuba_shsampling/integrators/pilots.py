@@ -12,14 +12,13 @@ per-machine calibration of :mod:`.costs`); the default plan times nothing.
 from __future__ import annotations
 
 import dataclasses
-import gc
 from typing import Callable
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..frozen import held_inputs
+from ..frozen import collector_paused, held_inputs
 from ..report.metrics import pixel_variance
 from ..timing import kernel_time
 from .strategy import Strategy
@@ -169,16 +168,12 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
     def replay(spp: int, seed: int):
         if failed:
             return render(spp, seed)
-        collecting = gc.isenabled()
-        gc.disable()  # a collection during a recording can free arrays it cannot record (frozen.py)
-        try:
-            return frozen(dr.opaque(mi.UInt32, seed), spp, objects, held_inputs(env))
-        except RuntimeError:  # e.g. an integrator whose arrays are out of reach: traced from now on
-            failed.append(True)
-            return render(spp, seed)
-        finally:
-            if collecting:
-                gc.enable()
+        with collector_paused():
+            try:
+                return frozen(dr.opaque(mi.UInt32, seed), spp, objects, held_inputs(env))
+            except RuntimeError:  # e.g. an integrator whose arrays are out of reach: traced from now on
+                failed.append(True)
+                return render(spp, seed)
 
     def release():
         frozen.clear()

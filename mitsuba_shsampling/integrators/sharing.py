@@ -102,6 +102,8 @@ def prepared(integrator, scene: mi.Scene, sensor=0) -> None:
         integrator.scenes.get(scene)  # the state made before, or FrozenBeforePlanError
         return
     state = integrator.prepare_scene(scene, sensor)
+    # Walked on every call, not once per state: a re-plan replaces arrays inside the same state
+    # (the strategy table), and a recording must find the current ones.
     integrator.frozen_inputs = held_inputs(state)
 
 
