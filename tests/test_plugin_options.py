@@ -130,6 +130,16 @@ def test_the_docstring_lists_every_parameter_with_its_default(plugin, options):
         assert f"(Default: {default})" in row.split("* -")[1], field.name
 
 
+@pytest.mark.parametrize("plugin", ["sh_direct", "sh_path", "sh_prb", "oracle_direct"])
+def test_the_docstring_examples_load_in_xml_and_python_with_the_same_parameters(plugin):
+    doc = mi.load_dict({"type": plugin}).__doc__
+    xml = doc[doc.index(f'<integrator type="{plugin}">'):doc.index("</integrator>") + len("</integrator>")]
+    python = doc[doc.index(f"'type': '{plugin}'"):].split("\n")[0]
+    from_xml = mi.load_string(xml.replace("<integrator ", '<integrator version="3.0.0" ', 1))
+    from_python = mi.load_dict(eval("{" + python + "}"))
+    assert from_xml.options == from_python.options
+
+
 def test_sh_direct_without_bsdf_samples_switches_mis_compensation_off_with_a_warning():
     with pytest.warns(UserWarning, match="'mis_compensation' is switched off"):
         options = DirectOptions(bsdf_samples=0)

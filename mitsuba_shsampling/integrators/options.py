@@ -56,8 +56,27 @@ class OptionError(ValueError):
     naming the plugin, the parameter, what it must be and what it got."""
 
 
+def sample_shares(emitter_samples: int, bsdf_samples: int) -> tuple[float, float]:
+    """The shares of a lane's samples that are emitter and BSDF samples: the sample-count
+    fractions with which ``direct`` (and every direct-illumination estimator here) weighs
+    its strategies in the power heuristic."""
+    total = emitter_samples + bsdf_samples
+    return emitter_samples / total, bsdf_samples / total
+
+
 def _doc(text: str) -> dict:
     return {"doc": text}
+
+
+def _emitter_samples_field(what: str):
+    """``emitter_samples`` of the direct-illumination plugins: ``what`` says what they draw."""
+    return dataclasses.field(default=1, metadata=_doc(
+        f"{what}; also the number of Mitsuba emitter samples for any other emitters."))
+
+
+def _bsdf_samples_field(more: str):
+    """``bsdf_samples`` of the direct-illumination plugins, ``more`` appended to its documentation."""
+    return dataclasses.field(default=1, metadata=_doc(f"BSDF samples per shading point{more}."))
 
 
 _ARTICLES = {int: "an integer", bool: "a boolean", float: "a float", str: "a string"}
@@ -72,6 +91,8 @@ class PluginOptions:
 
     #: Plugin name used in messages (set by the subclasses).
     PLUGIN: ClassVar[str] = "sh_*"
+    #: Parameters of the plugin docstring's XML and Python example (:func:`document_parameters`).
+    EXAMPLE: ClassVar[dict] = {}
 
     def __post_init__(self) -> None:
         for field in dataclasses.fields(self):
@@ -91,6 +112,11 @@ class PluginOptions:
     def _fail(self, name: str, requirement: str, value) -> None:
         kind = _TYPE_NAMES.get(type(value), type(value).__name__)
         raise OptionError(f"{self.PLUGIN}: parameter '{name}' {requirement}, got {kind} {value!r}")
+
+    @property
+    def sample_shares(self) -> tuple[float, float]:
+        """(emitter, BSDF) shares of a lane's samples (of the plugins with sample counts)."""
+        return sample_shares(self.emitter_samples, self.bsdf_samples)
 
     def _check_sample_counts(self) -> None:
         """``emitter_samples`` and ``bsdf_samples`` (of the plugins that have them): >= 0, not both 0."""
@@ -227,12 +253,12 @@ class DirectOptions(ProductOptions):
 
     PLUGIN: ClassVar[str] = "sh_direct"
 
-    emitter_samples: int = dataclasses.field(default=1, metadata=_doc(
+    EXAMPLE: ClassVar[dict] = {"emitter_samples": 1, "bsdf_samples": 1, "strategy": "auto"}
+
+    emitter_samples: int = _emitter_samples_field(
         "Environment samples per shading point, drawn from the product of the BSDF lobe "
-        "(in spherical harmonics, rotated per shading point) and the environment map; also "
-        "the number of Mitsuba emitter samples for any other emitters."))
-    bsdf_samples: int = dataclasses.field(default=1, metadata=_doc(
-        "BSDF samples per shading point."))
+        "(in spherical harmonics, rotated per shading point) and the environment map")
+    bsdf_samples: int = _bsdf_samples_field("")
 
     def _check_ranges(self) -> None:
         super()._check_ranges()
@@ -253,6 +279,7 @@ class PathOptions(ProductOptions):
     """Parameters of ``sh_path``."""
 
     PLUGIN: ClassVar[str] = "sh_path"
+    EXAMPLE: ClassVar[dict] = {"max_depth": 8}
     # The BSDF sample continues the path, so it always runs.
     STRATEGIES: ClassVar[tuple] = (AUTO, Strategy.ENVIRONMENT.label, Strategy.PRODUCT.label)
 
@@ -295,6 +322,7 @@ class PRBOptions(PathOptions):
     and the product strategy's."""
 
     PLUGIN: ClassVar[str] = "sh_prb"
+    EXAMPLE: ClassVar[dict] = {"max_depth": 6}
 
     max_depth: int = dataclasses.field(default=6, metadata=_doc(
         "Longest path, in vertices after the camera (-1: infinite). As in Mitsuba's "
@@ -319,13 +347,12 @@ class OracleOptions(PluginOptions):
 
     PLUGIN: ClassVar[str] = "oracle_direct"
 
-    emitter_samples: int = dataclasses.field(default=1, metadata=_doc(
+    EXAMPLE: ClassVar[dict] = {"emitter_samples": 1, "bsdf_samples": 1, "resolution": 64}
+
+    emitter_samples: int = _emitter_samples_field(
         "Oracle samples of the environment per shading point, drawn from the exact BSDF x "
-        "environment product tabulated at the shading point; also the number of Mitsuba "
-        "emitter samples for any other emitters."))
-    bsdf_samples: int = dataclasses.field(default=1, metadata=_doc(
-        "BSDF samples per shading point; with 0 every environment sample is an oracle sample "
-        "(weight 1)."))
+        "environment product tabulated at the shading point")
+    bsdf_samples: int = _bsdf_samples_field("; with 0 every environment sample is an oracle sample (weight 1)")
     resolution: int = dataclasses.field(default=DEFAULT_ORACLE_RESOLUTION, metadata=_doc(
         f"Cells per side N of the table (a power of two in [2, {MAX_ORACLE_RESOLUTION}], capped at "
         "the environment pyramid's finest level): the BSDF is evaluated at the centres of the "
@@ -370,14 +397,33 @@ def _documentation_order(options_cls):
     return lambda field: order.index(field.name)
 
 
+def usage_example(options_cls: type[PluginOptions], indent: str = "") -> str:
+    """The RST ``tabs`` of a plugin's docstring: ``options_cls.EXAMPLE`` in XML and as a
+    Python dict, written from one place so that the two cannot disagree."""
+    xml_tags = {bool: "boolean", int: "integer", float: "float", str: "string"}
+
+    def xml_value(value):
+        return str(value).lower() if isinstance(value, bool) else value
+
+    example = options_cls.EXAMPLE
+    properties = [f'{indent}            <{xml_tags[type(v)]} name="{k}" value="{xml_value(v)}"/>'
+                  for k, v in example.items()]
+    python = ", ".join([f"'type': '{options_cls.PLUGIN}'"] + [f"'{k}': {v!r}" for k, v in example.items()])
+    return "\n".join([f"{indent}.. tabs::", f"{indent}    .. code-tab:: xml", "",
+                      f'{indent}        <integrator type="{options_cls.PLUGIN}">', *properties,
+                      f"{indent}        </integrator>", "", f"{indent}    .. code-tab:: python", "",
+                      f"{indent}        {python}", ""])
+
+
 def document_parameters(options_cls: type[PluginOptions]):
     """Class decorator: put the parameter rows of ``options_cls`` right after the
-    ``.. pluginparameters::`` line of the class docstring."""
+    ``.. pluginparameters::`` line of the class docstring, and its usage example
+    (:func:`usage_example`) at the end."""
     def decorate(cls):
-        lines = cls.__doc__.split("\n")
+        lines = cls.__doc__.rstrip().split("\n")
         at = next(i for i, line in enumerate(lines) if line.strip() == ".. pluginparameters::")
         indent = lines[at][:len(lines[at]) - len(lines[at].lstrip())]
         lines[at + 1:at + 1] = ["", parameter_table(options_cls, indent)]
-        cls.__doc__ = "\n".join(lines)
+        cls.__doc__ = "\n".join(lines + ["", usage_example(options_cls, indent)])
         return cls
     return decorate

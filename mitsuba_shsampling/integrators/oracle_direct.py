@@ -49,19 +49,6 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
     environment's share of it left to the oracle. Delta BSDFs, scenes whose
     environment is not an ``envmap`` and scenes without one render as
     :monosp:`direct` does.
-
-    .. tabs::
-        .. code-tab:: xml
-
-            <integrator type="oracle_direct">
-                <integer name="emitter_samples" value="1"/>
-                <integer name="bsdf_samples" value="1"/>
-                <integer name="resolution" value="64"/>
-            </integrator>
-
-        .. code-tab:: python
-
-            'type': 'oracle_direct', 'emitter_samples': 1, 'bsdf_samples': 1, 'resolution': 64
     """
 
     def __init__(self, props: mi.Properties):
@@ -79,13 +66,10 @@ class OracleDirectIntegrator(mi.SamplingIntegrator):
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        env = self.scenes.get(scene)
-        options = self.options
+        env, options = self.scenes.get(scene), self.options
+        n_e, n_b, (frac_e, frac_b) = options.emitter_samples, options.bsdf_samples, options.sample_shares
         hit = first_hit(scene, ray, active, options.hide_emitters)
-        si, bsdf, ctx, smooth = hit.si, hit.bsdf, hit.ctx, hit.smooth
-        L = hit.emitted
-        n_e, n_b = options.emitter_samples, options.bsdf_samples
-        frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
+        L, si, bsdf, ctx, smooth = hit.emitted, hit.si, hit.bsdf, hit.ctx, hit.smooth
 
         # ------------- The oracle's table: the BSDF at every cell centre -------------
         def lobe(d, act):

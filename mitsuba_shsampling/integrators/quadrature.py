@@ -19,6 +19,7 @@ import mitsuba as mi
 import numpy as np
 
 from .estimators import environment_ray_target
+from .options import sample_shares
 from .strategy import Strategy
 
 FRAMES = 4096
@@ -159,7 +160,7 @@ def strategy_variances(samples: dict, n_e: int, n_b: int, product: bool, plain: 
             return np.mean(np.where(pdf > 0, (value - mean) ** 2 * pdf * inv_q, 0.0), axis=1)
 
         def mis_variance(pdf):
-            frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
+            frac_e, frac_b = sample_shares(n_e, n_b)
             a2, b2 = (frac_e * pdf) ** 2, (frac_b * p_bsdf) ** 2
             w = np.where(pdf > 0, a2 / (a2 + b2), 0.0) if n_b else np.where(pdf > 0, 1.0, 0.0)
             w_b = np.where(p_bsdf > 0, 1.0 - w, 0.0)

@@ -45,19 +45,6 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     ``integrator.plan(scene)`` makes the plan before the first render (which makes
     it otherwise) and returns it; ``integrator.choice(scene)`` returns it once made.
     The 2D sample of each product sample comes from the scene's sampler (``next_2d``), so stratification carries through the warp.
-
-    .. tabs::
-        .. code-tab:: xml
-
-            <integrator type="sh_direct">
-                <integer name="emitter_samples" value="1"/>
-                <integer name="bsdf_samples" value="1"/>
-                <string name="strategy" value="auto"/>
-            </integrator>
-
-        .. code-tab:: python
-
-            'type': 'sh_direct', 'emitter_samples': 1, 'bsdf_samples': 1, 'strategy': 'auto'
     """
 
     def __init__(self, props: mi.Properties):
@@ -89,13 +76,10 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         return self.scenes.get(scene).choice
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
-        env = self.scenes.get(scene)
-        options = self.options
+        env, options = self.scenes.get(scene), self.options
+        n_e, n_b, (frac_e, frac_b) = options.emitter_samples, options.bsdf_samples, options.sample_shares
         hit = first_hit(scene, ray, active, options.hide_emitters)
-        si, bsdf, ctx, smooth = hit.si, hit.bsdf, hit.ctx, hit.smooth
-        L = hit.emitted
-        n_e, n_b = options.emitter_samples, options.bsdf_samples
-        frac_e, frac_b = n_e / (n_e + n_b), n_b / (n_e + n_b)
+        L, si, bsdf, ctx, smooth = hit.emitted, hit.si, hit.bsdf, hit.ctx, hit.smooth
 
         lobe, use_product = env.lobe(si, smooth)
         # Lanes of materials whose strategy carries every sample (product_only,

@@ -38,17 +38,6 @@ class SHPathIntegrator(mi.SamplingIntegrator):
     next one (one float of loop state). Other emitters keep Mitsuba's emitter
     sampling; without an ``envmap`` nothing is built and it runs like
     :monosp:`path`.
-
-    .. tabs::
-        .. code-tab:: xml
-
-            <integrator type="sh_path">
-                <integer name="max_depth" value="8"/>
-            </integrator>
-
-        .. code-tab:: python
-
-            'type': 'sh_path', 'max_depth': 8
     """
 
     def __init__(self, props: mi.Properties):

@@ -61,17 +61,6 @@ class SHPRBIntegrator(RBIntegrator):
     changes them at every step, and a build costs many passes' time on a
     scene with many materials. In between, the state of slightly older
     parameters keeps images and gradients unbiased.
-
-    .. tabs::
-        .. code-tab:: xml
-
-            <integrator type="sh_prb">
-                <integer name="max_depth" value="6"/>
-            </integrator>
-
-        .. code-tab:: python
-
-            'type': 'sh_prb', 'max_depth': 6
     """
 
     def __init__(self, props: mi.Properties):
