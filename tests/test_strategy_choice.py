@@ -413,6 +413,9 @@ def test_auto_chooses_before_the_first_pass_and_reports_every_material():
     names = {m.name for m in choice.materials}
     assert {"ggx", "diffuse", "plane"} <= names
     assert "at equal time" in choice.summary() or "no product strategy pays" in choice.summary()
+    # Listed by name, whatever order the scene's objects were registered in.
+    listed = [part.split(":")[0] for part in choice.summary().split("; ", 1)[1].split(", ")]
+    assert listed == sorted(listed) and {"ggx", "diffuse", "plane"} <= set(listed)
     # By default no clock enters the plan: the costs are the cost model's.
     assert choice.mode == "estimate" and choice.pass_time == {} and choice.costs["product_walk"] > 0
 

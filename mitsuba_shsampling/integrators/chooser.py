@@ -162,11 +162,13 @@ class StrategyChoice:
 
 
 def summary_of(choice: dict) -> str:
-    """One line from :meth:`StrategyChoice.as_dict` (also as a report stores it)."""
+    """One line from :meth:`StrategyChoice.as_dict` (also as a report stores it). Materials
+    are listed by name: their registry order follows Mitsuba's parallel scene loading, and the
+    same plan should read the same in every process."""
     parts = [f"{m['name']}: {m['strategy']}" + (" (forced)" if m.get("forced") else "")
              + (f" (variance /{m['predicted_gain']:.2f})" if m["strategy"].startswith("product")
                 and not m.get("forced") else "")
-             for m in choice["materials"] if m["share"] > 0]
+             for m in sorted(choice["materials"], key=lambda m: m["name"]) if m["share"] > 0]
     head = ("no product strategy pays: environment strategies only, without product code" if choice["lean"]
             else f"predicted x{choice['predicted_gain']:.2f} at equal time over environment strategies only")
     environment = choice.get("pilot_variance", {}).get(Strategy.ENVIRONMENT.label)
