@@ -400,13 +400,11 @@ def _documentation_order(options_cls):
 def usage_example(options_cls: type[PluginOptions], indent: str = "") -> str:
     """The RST ``tabs`` of a plugin's docstring: ``options_cls.EXAMPLE`` in XML and as a
     Python dict, written from one place so that the two cannot disagree."""
-    xml_tags = {bool: "boolean", int: "integer", float: "float", str: "string"}
-
     def xml_value(value):
         return str(value).lower() if isinstance(value, bool) else value
 
     example = options_cls.EXAMPLE
-    properties = [f'{indent}            <{xml_tags[type(v)]} name="{k}" value="{xml_value(v)}"/>'
+    properties = [f'{indent}            <{_TYPE_NAMES[type(v)]} name="{k}" value="{xml_value(v)}"/>'
                   for k, v in example.items()]
     python = ", ".join([f"'type': '{options_cls.PLUGIN}'"] + [f"'{k}': {v!r}" for k, v in example.items()])
     return "\n".join([f"{indent}.. tabs::", f"{indent}    .. code-tab:: xml", "",
