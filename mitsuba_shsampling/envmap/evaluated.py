@@ -9,8 +9,8 @@ emitter itself, so the image is only a sampling density: it need not be exact, o
 positive where the radiance is.
 
 What such an image can resolve is smooth: the sky. The sun of a ``sunsky`` (a disc of half a
-degree, radiance 10^4-10^5 times the sky's) is not in the image (it is evaluated with
-``sun_scale`` set to 0 for the duration) but in :class:`SkyComponents.sun_power`: the
+degree, radiance 10^4-10^5 times the sky's) is not in the image (a copy without its sun is
+evaluated) but in :class:`SkyComponents.sun_power`: the
 product strategy then samples a mixture that gives the emitter's own sampling (which draws
 the sun exactly) a share of the samples (:class:`~mitsuba_shsampling.warp.sky_mixture.SkyMixture`).
 """
@@ -78,42 +78,84 @@ def radiance_luminance(emitter: mi.Emitter, d: mi.Vector3f) -> mi.Float:
     return luminance(emitter.eval(si))
 
 
-def _sun_scale_set_to(emitter: mi.Emitter, value: float | None):
-    """Set a ``sunsky``'s ``sun_scale`` (None: leave it); returns the old value."""
+def _value(params: mi.SceneParameters, key: str):
+    """A traversed parameter as a Python float, or a list of floats (RGB)."""
+    values = np.ravel(np.asarray(params[key], dtype=np.float64))
+    return float(values[0]) if values.size == 1 else [float(v) for v in values]
+
+
+def _option(described: str, label: str, default: str) -> str:
+    """The value after ``label =`` in a plugin's description (its ``str``), else ``default``."""
+    for line in described.splitlines():
+        if line.strip().startswith(label + " ="):
+            return line.split("=", 1)[1].strip()
+    return default
+
+
+def _sunsky_copy(emitter: mi.Emitter, with_sun: bool) -> mi.Emitter:
+    """A ``sunsky`` with ``emitter``'s sky (its sun's world direction, turbidity, albedo,
+    scales and ``to_world``; with its sun, or without: ``sun_scale`` 0).
+
+    The set-up evaluates copies, never the scene's emitter: with the scene's own sunsky
+    evaluated in kernels of their own before the first render, a later render of a second
+    sunsky scene in the same process aborted in Dr.Jit's LLVM backend ("invalid redefinition
+    of function", the ``Emitter::eval`` callable emitted twice into one kernel; a copy
+    evaluated in its place did not). The sun's aperture and model are not traversable; they
+    are read from the emitter's description (they only size the sun's power estimate)."""
     params = mi.traverse(emitter)
-    if "sun_scale" not in params or value is None:
+    albedo = _value(params, "albedo.value")
+    described = str(emitter)
+    return mi.load_dict({
+        "type": "sunsky", "sun_direction": _value(params, "sun_direction"),
+        "turbidity": _value(params, "turbidity"), "sky_scale": _value(params, "sky_scale"),
+        "sun_scale": _value(params, "sun_scale") if with_sun else 0.0,
+        "albedo": {"type": "rgb", "value": albedo} if isinstance(albedo, list) else albedo,
+        "sun_aperture": float(_option(described, "Sun aperture", "0.5358")),
+        "complex_sun": _option(described, "Complex sun model", "false") == "true",
+        "to_world": mi.ScalarTransform4f(np.asarray(params["to_world"].matrix.numpy())[..., 0]),
+    })
+
+
+def _constant_luminance(emitter: mi.Emitter) -> float | None:
+    """A ``constant`` emitter's luminance read on the host (None where its radiance is not
+    a plain RGB or grey value: it is then evaluated in a kernel)."""
+    params = mi.traverse(emitter)
+    if "radiance.value" not in params or mi.is_spectral:
         return None
-    old = float(params["sun_scale"])
-    params["sun_scale"] = value
-    params.update()
-    return old
+    value = _value(params, "radiance.value")
+    return float(np.dot(value, [0.212671, 0.715160, 0.072169])) if isinstance(value, list) else value
 
 
 def sky_components(emitter: mi.Emitter, width: int = IMAGE_WIDTH) -> SkyComponents:
     """The evaluated image of ``emitter``'s smooth part and the power of the rest.
 
-    The whole emitter's integral is estimated with its own sampling (``sample_direction``,
-    :data:`INTEGRAL_SAMPLES` stratified samples); what the image does not hold of it is the
-    sun's. A ``sunsky`` is evaluated without its sun and given back its ``sun_scale``
-    afterwards, also when the evaluation fails."""
+    A ``sunsky``'s image is that of a copy without its sun (:func:`_sunsky_copy`); the
+    whole emitter's integral is estimated with a copy's own sampling (``sample_direction``,
+    :data:`INTEGRAL_SAMPLES` stratified samples), and what the image does not hold of it is
+    the sun's. A ``constant``'s image is its luminance, read on the host."""
     height = max(width // 2, 1)
-    total, samples = _emitter_integral(emitter)
-    old = _sun_scale_set_to(emitter, 0.0)
-    try:
-        image = np.broadcast_to(radiance_luminance(emitter, latlong_directions(width, height)).numpy(),
-                                (height * width,)).reshape(height, width)  # a constant's is one value
-    finally:
-        _sun_scale_set_to(emitter, old)
-    image = np.where(np.isfinite(image) & (image > 0), image, 0.0).astype(np.float32)
-    # The image's integral: texels are equal in (u, theta), their solid angle is sin(theta) du dtheta.
     theta = (np.arange(height) + 0.5) * (np.pi / height)
-    sky = float(np.sum(image.astype(np.float64) * np.sin(theta)[:, None]) * (2 * np.pi / width) * (np.pi / height))
-    sun = total - sky if old else 0.0
+    constant = _constant_luminance(emitter) if emitter.class_name() == "ConstantBackgroundEmitter" else None
+    if constant is not None:
+        image = np.full((height, width), max(constant, 0.0) if np.isfinite(constant) else 0.0, np.float32)
+        total, samples, has_sun = 4 * np.pi * float(image[0, 0]), None, False
+    else:
+        has_sun = emitter.class_name() == "SunskyEmitter"
+        whole = _sunsky_copy(emitter, with_sun=True) if has_sun else emitter
+        total, samples = _emitter_integral(whole)
+        sky = _sunsky_copy(emitter, with_sun=False) if has_sun else emitter
+        image = np.broadcast_to(radiance_luminance(sky, latlong_directions(width, height)).numpy(),
+                                (height * width,)).reshape(height, width)
+        image = np.where(np.isfinite(image) & (image > 0), image, 0.0).astype(np.float32)
+    # The image's integral: texels are equal in (u, theta), their solid angle is sin(theta) du dtheta.
+    sky_total = float(np.sum(image.astype(np.float64) * np.sin(theta)[:, None]) * (2 * np.pi / width)
+                      * (np.pi / height))
+    sun = total - sky_total if has_sun else 0.0
     if not sun > 1e-3 * total:  # what is left of the estimate without a sun is its noise, not light
         return SkyComponents(image, 0.0, None, total)
-    direction = dr.ravel(mi.traverse(emitter)["sun_direction"]).numpy()
+    direction = _value(mi.traverse(emitter), "sun_direction")
     on_sun = float(np.mean(samples > 2.0 * image.max()))
-    return SkyComponents(image, sun, mi.ScalarVector3f(*map(float, direction)), total, max(on_sun, 1e-3))
+    return SkyComponents(image, sun, mi.ScalarVector3f(*direction), total, max(on_sun, 1e-3))
 
 
 def _emitter_integral(emitter: mi.Emitter) -> tuple[float, np.ndarray]:
