@@ -20,6 +20,7 @@ perturbed normal (:mod:`~mitsuba_shsampling.lobes.perturbed_frames`). With
 
 from __future__ import annotations
 
+import gc
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -459,6 +460,12 @@ class SceneCache:
                     "the frozen function's first call, and again outside it to refresh the state")
             return self._env
         if self._scene is not scene or (not stale_ok and self._identity(self._inputs()) != self._key):
+            # Objects of dropped scenes that only the cycle collector frees are still registered
+            # with Dr.Jit, and its virtual calls trace them too: with two sunsky emitters that
+            # aborted the process in LLVM ("invalid redefinition of function", tests/test_skies.py
+            # on 2 workers, 6 runs in 8 before this line, 0 in 11 after). A build is host work of
+            # a second or more; a collection is milliseconds.
+            gc.collect()
             self._env = self._build(scene)
             self._scene = scene
             self._traversed = self._traverse(scene)
