@@ -20,6 +20,7 @@ perturbed normal (:mod:`~mitsuba_shsampling.lobes.perturbed_frames`). With
 
 from __future__ import annotations
 
+import gc
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -29,12 +30,14 @@ import drjit as dr
 import mitsuba as mi
 
 from ..envmap.emitter import EmitterDirections, compensated_copy
+from ..envmap.evaluated import EVALUATED_EMITTERS, is_evaluated, sky_components
 from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid
 from ..lobes import SceneLobes
 from ..scene_materials import registry_id, scene_materials
 from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
+from ..warp.sky_mixture import SkyMixture
 from .options import OptionError, ProductOptions
 from .strategy import AUTO, Strategy, StrategyTable, strategy_named
 
@@ -67,6 +70,10 @@ class EnvironmentState:
     (emitters besides the environment, or the environment where this package does
     not sample it); subclasses set it once they know."""
 
+    #: Environments without texels (``sunsky``, ``constant``) are sampled through their
+    #: evaluated radiance (:mod:`~mitsuba_shsampling.envmap.evaluated`).
+    samples_evaluated_emitters = False
+
     def __init__(self, scene: mi.Scene):
         self.emitter = scene.environment()
         self.emitter_id = emitter_id(self.emitter)
@@ -76,8 +83,11 @@ class EnvironmentState:
         self.needs_emitter_sampling = True
         if self.emitter is None:
             self.reason = "the scene has no environment emitter"
-        elif self.emitter.class_name() != "EnvironmentMapEmitter":
-            self.reason = (f"the environment emitter is '{self.emitter.class_name()}', not an 'envmap'; "
+        elif not (self.emitter.class_name() == "EnvironmentMapEmitter"
+                  or (self.samples_evaluated_emitters and is_evaluated(self.emitter))):
+            kinds = "'envmap'" + ("".join(f", '{k}'" for k in EVALUATED_EMITTERS.values())
+                                  if self.samples_evaluated_emitters else "")
+            self.reason = (f"the environment emitter is '{self.emitter.class_name()}', not one of {kinds}; "
                            "it keeps Mitsuba's own sampling")
         else:
             self.reason = ""
@@ -108,11 +118,16 @@ class ProductEnvironment(EnvironmentState):
     also whether Mitsuba's pdf of a hit emitter is needed), ``has_dirac_materials`` (bool).
     """
 
+    samples_evaluated_emitters = True
+
     def __init__(self, scene: mi.Scene, options: ProductOptions, carry_all: bool = False):
         start = time.perf_counter()
         super().__init__(scene)
         self.scene = scene
         self.pyramid = self.lobes = self.warp = self.warp_plain = self.env_directions = self.env_plain = None
+        #: The evaluated environment's image and sun (:class:`~..envmap.evaluated.SkyComponents`;
+        #: None for an ``envmap``).
+        self.sky = None
         self.strategies = self.choice = None
         self.strategy_option = options.default_strategy
         #: The plugin's name, for messages; what a stored plan must match (:mod:`.plan_file`).
@@ -167,6 +182,13 @@ class ProductEnvironment(EnvironmentState):
             warp_options = dict(sh_depth=options.warp_sh_depth, defensive_share=options.defensive_share,
                                 proxy_depth=options.warp_proxy_depth, cosine_tables=self.lobes.has_cosine_lobes)
             self.warp = self.warp_plain = ProductWarp(self.pyramid, **warp_options)
+            if self.sky is not None and self.sky.sun is not None:
+                # A sun the pyramid leaves out: the emitter's own sampling draws it, for
+                # each lane in the share its lobe gives the sun.
+                sun = self.pyramid.grid_from_world(mi.Vector3f(self.sky.sun))
+                self.warp = self.warp_plain = SkyMixture(
+                    self.warp, self.env_plain, mi.ScalarVector3f(sun.x[0], sun.y[0], sun.z[0]),
+                    self.sky.sun_power, self.pyramid.total, self.sky.sun_sampling_share)
             if self.pyramid.mis_compensation:
                 self.warp_plain = ProductWarp(plain_pyramid, **warp_options) if carry_all else None
         first = forced or Strategy.PRODUCT
@@ -191,16 +213,23 @@ class ProductEnvironment(EnvironmentState):
         The uncompensated one is started where the product may carry every sample; it is
         dropped if no material turns out to have a product lobe."""
         any_smooth = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth) for m in self._materials.values())
+        if is_evaluated(self.emitter):
+            # Evaluated on the host first: the sun's sun_scale is set to 0 while the sky is.
+            # Its sampling is never compensated (Mitsuba's sampling of it has no such option,
+            # and a constant one would compensate to nothing): one pyramid serves every lane.
+            self.sky = sky_components(self.emitter)
+            wants_plain = False
+            build = lambda compensated: EnvPyramid.from_latlong(self.sky.image)  # noqa: E731
+        else:
+            build = lambda compensated: EnvPyramid(self.emitter, mis_compensation=compensated)  # noqa: E731
         with ThreadPoolExecutor(max_workers=2) as pool:
-            pyramid = pool.submit(EnvPyramid, self.emitter, mis_compensation=options.mis_compensation) \
-                if any_smooth else None
-            plain_pyramid = pool.submit(EnvPyramid, self.emitter) if any_smooth and wants_plain else None
+            pyramid = pool.submit(build, options.mis_compensation) if any_smooth else None
+            plain_pyramid = pool.submit(build, False) if any_smooth and wants_plain else None
             self.lobes = SceneLobes(scene, max_bands=options.max_bands)
             if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
                 self.reason = "every BSDF in the scene is delta: no shading point samples the environment"
                 return None
-            self.pyramid = (pyramid.result() if pyramid is not None
-                            else EnvPyramid(self.emitter, mis_compensation=options.mis_compensation))
+            self.pyramid = pyramid.result() if pyramid is not None else build(options.mis_compensation)
             return plain_pyramid.result() if plain_pyramid is not None else None
 
     def _resolve_named(self, named: dict[str, Strategy]) -> dict[int, Strategy]:
@@ -431,6 +460,12 @@ class SceneCache:
                     "the frozen function's first call, and again outside it to refresh the state")
             return self._env
         if self._scene is not scene or (not stale_ok and self._identity(self._inputs()) != self._key):
+            # Objects of dropped scenes that only the cycle collector frees are still registered
+            # with Dr.Jit, and its virtual calls trace them too: with two sunsky emitters that
+            # aborted the process in LLVM ("invalid redefinition of function", tests/test_skies.py
+            # on 2 workers, 6 runs in 8 before this line, 0 in 11 after). A build is host work of
+            # a second or more; a collection is milliseconds.
+            gc.collect()
             self._env = self._build(scene)
             self._scene = scene
             self._traversed = self._traverse(scene)

@@ -61,6 +61,15 @@ class ProxyLobe(NamedTuple):
     BSDF): :class:`~.product.ProductWarp` samples it from its cosine tables
     (:mod:`.cosine_table`), without SH levels."""
 
+    def value(self, w: mi.Vector3f) -> mi.Float:
+        """The proxy at grid-frame direction ``w``: the same rational glossy lobe as
+        :meth:`children_values`, so its integral over the sphere is
+        ``diffuse_weight + glossy_weight``."""
+        lam = dr.minimum(dr.maximum(self.exponent, 0.0), MAX_SHARPNESS)
+        glossy = self.glossy_weight * (1.0 + lam) * (1.0 / (4.0 * math.pi)) \
+            / dr.square(1.0 + 0.5 * lam * (1.0 - dr.dot(self.mirror, w)))
+        return dr.fma(self.diffuse_weight * (1.0 / math.pi), dr.maximum(dr.dot(self.normal, w), 0.0), glossy)
+
     def children_values(self, cell: Cell, centres) -> tuple:
         """The proxy at the centres of the four children of ``cell`` (order
         (0,0), (0,1), (1,0), (1,1)). ``centres`` = (cos, sin) of the left and
