@@ -181,14 +181,7 @@ class ProductEnvironment(EnvironmentState):
             # Diffuse materials' lanes sample the product from the cosine tables (no SH walk).
             warp_options = dict(sh_depth=options.warp_sh_depth, defensive_share=options.defensive_share,
                                 proxy_depth=options.warp_proxy_depth, cosine_tables=self.lobes.has_cosine_lobes)
-            self.warp = self.warp_plain = ProductWarp(self.pyramid, **warp_options)
-            if self.sky is not None and self.sky.sun is not None:
-                # A sun the pyramid leaves out: the emitter's own sampling draws it, for
-                # each lane in the share its lobe gives the sun.
-                sun = self.pyramid.grid_from_world(mi.Vector3f(self.sky.sun))
-                self.warp = self.warp_plain = SkyMixture(
-                    self.warp, self.env_plain, mi.ScalarVector3f(sun.x[0], sun.y[0], sun.z[0]),
-                    self.sky.sun_power, self.pyramid.total, self.sky.sun_sampling_share)
+            self.warp = self.warp_plain = self._with_sun(ProductWarp(self.pyramid, **warp_options))
             if self.pyramid.mis_compensation:
                 self.warp_plain = ProductWarp(plain_pyramid, **warp_options) if carry_all else None
         first = forced or Strategy.PRODUCT
@@ -203,6 +196,15 @@ class ProductEnvironment(EnvironmentState):
         # smooth lane samples the environment through this object.
         self.needs_emitter_sampling = self.has_other_emitters
         self.build_seconds = time.perf_counter() - start
+
+    def _with_sun(self, warp):
+        """``warp``, or where the pyramid leaves a sun out, ``warp`` mixed with the emitter's
+        own sampling, which draws the sun, for each lane in the share its lobe gives it."""
+        if self.sky is None or self.sky.sun is None:
+            return warp
+        sun = self.pyramid.grid_from_world(mi.Vector3f(self.sky.sun))
+        return SkyMixture(warp, self.env_plain, mi.ScalarVector3f(sun.x[0], sun.y[0], sun.z[0]),
+                          self.sky.sun_power, self.pyramid.total, self.sky.sun_sampling_share)
 
     def _fit_lobes_and_build_pyramids(self, scene, options: ProductOptions, wants_plain: bool):
         """Set ``lobes`` and ``pyramid`` (or ``reason`` where every BSDF is delta); returns
