@@ -10,9 +10,11 @@ the code under test.
 
 from __future__ import annotations
 
+import gc
 import glob
 import os
 import warnings
+import weakref
 
 import drjit as dr
 import mitsuba as mi
@@ -23,6 +25,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.grid import Cell, cell_index, grid_coordinates, grid_direction  # noqa: E402
 from mitsuba_shsampling.envmap import DEFAULT_MAX_DEPTH, EnvPyramid, auto_depth  # noqa: E402
+from mitsuba_shsampling.envmap import pyramid as pyramid_module  # noqa: E402
 from mitsuba_shsampling.envmap.pyramid import (  # noqa: E402
     DIM_TOTAL, LEVEL_TOLERANCE, SUBTEXEL_LEVELS, TRIM_FLOOR_DEPTH, _corner_radiance, coarse_leaf_excess, leaf_records)
 from mitsuba_shsampling.envmap.synthetic import (  # noqa: E402
@@ -452,6 +455,38 @@ def test_coarse_leaf_excess_is_zero_for_a_constant_map_and_black_map():
     finest = np.full((64, 64), 3.0)
     assert abs(coarse_leaf_excess(finest, np.full((65, 65), 1.0), 4)) < 1e-12
     assert coarse_leaf_excess(np.zeros((64, 64)), np.zeros((65, 65)), 4) == 0.0
+
+
+def test_the_level_test_and_the_leaf_records_are_the_same_computed_block_by_block(monkeypatch):
+    """Both work through the finest level a block of rows at a time (to keep their
+    temporaries in the cache); a block size that cuts the level in many pieces gives the
+    values of one block over the whole level."""
+    image = random_latlong(16, 32, seed=5)
+    image[3, 7] = 300.0
+    luminance = (image @ np.array([0.212671, 0.715160, 0.072169])).astype(np.float32)
+    fine = EnvPyramid.from_latlong(image, max_depth=7, level_tolerance=0)
+    finest = fine.level_numpy(7).astype(np.float64)
+    corners = np.maximum(_corner_radiance(luminance, 128), 0)
+    blocks = finest.astype(np.float32).reshape(64, 2, 64, 2).transpose(0, 2, 1, 3).reshape(-1, 4)
+    whole = [coarse_leaf_excess(finest, corners, level) for level in (6, 5, 3)], leaf_records(blocks, corners)
+    monkeypatch.setattr(pyramid_module, "_BLOCK_CELLS", 300)  # 2-3 rows of cells a block
+    pieces = [coarse_leaf_excess(finest, corners, level) for level in (6, 5, 3)], leaf_records(blocks, corners)
+    assert pieces[0] == pytest.approx(whole[0], rel=1e-12)
+    assert np.array_equal(pieces[1].view(np.uint32), whole[1].view(np.uint32))
+
+
+def test_the_compensated_and_plain_pyramids_of_a_map_share_its_finest_level_and_keep_nothing():
+    """The integrators build both pyramids of a map at once: the second takes the first's
+    finest level while the first holds it; once neither does, it is freed."""
+    luminance = random_latlong(8, 16, seed=6) @ np.array([0.212671, 0.715160, 0.072169])
+    luminance = luminance.astype(np.float32)
+    first = pyramid_module._target_at_finest_level(luminance, 1.0, 6)
+    assert pyramid_module._target_at_finest_level(luminance, 1.0, 6) is first
+    assert pyramid_module._target_at_finest_level(luminance, 2.0, 6) is not first  # another scale
+    alive = weakref.ref(first)
+    del first
+    gc.collect()
+    assert alive() is None
 
 
 @pytest.mark.parametrize("tolerance", [-1e-3, float("nan"), float("inf"), True, "0.1"])

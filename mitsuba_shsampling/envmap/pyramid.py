@@ -26,8 +26,10 @@ features (a sun of one texel) can therefore not be missed at any depth.
 from __future__ import annotations
 
 import numbers
+import threading
 import time
 import warnings
+import weakref
 
 import drjit as dr
 import mitsuba as mi
@@ -52,6 +54,9 @@ _BLOCK_COUNT_MASK = 0x55555555
 #: Texel rows / grid rows processed at once while resampling (bounds the
 #: float64 temporaries to a few times 8 * _CHUNK * max(W, 2^D) bytes).
 _CHUNK = 64
+#: Finest cells per block in :func:`coarse_leaf_excess` and :func:`leaf_records` (2 MB of
+#: float64: whole-level temporaries are slower to allocate and fault in than to compute).
+_BLOCK_CELLS = 1 << 18
 
 DIM_TOTAL = 1e-20
 """Integral (radiance x sr) below which a map is sampled as black. Its cells' float32
@@ -171,9 +176,14 @@ def _corner_radiance(lum: np.ndarray, n: int) -> np.ndarray:
     c1 = (c0 + 1) % width
     # Separable: along theta first at the map's width, then along u at the grid's
     # (two (n + 1)^2 gathers, not four).
-    lum = lum.astype(np.float32)
+    lum = lum.astype(np.float32, copy=False)
     rows = lum[r0] * (1 - fr).astype(np.float32) + lum[r1] * fr.astype(np.float32)
-    return (rows[:, c0] * (1 - fc).astype(np.float32) + rows[:, c1] * fc.astype(np.float32)).astype(np.float32)
+    out = rows[:, c0]
+    out *= (1 - fc).astype(np.float32)
+    right = rows[:, c1]
+    right *= fc.astype(np.float32)
+    out += right
+    return out
 
 
 def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
@@ -229,29 +239,34 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
     if parts <= 1 or total <= 0:
         return 0.0
     m = n // parts
-    share = (finest.astype(np.float64) / total).reshape(m, parts, m, parts)
-    leaf_share = share.sum(axis=(1, 3))
-    c = corners[::parts, ::parts].astype(np.float64)
-    v00, v01, v10, v11 = c[:m, :m], c[:m, 1:], c[1:, :m], c[1:, 1:]
-    floor = CORNER_FLOOR * (v00 + v01 + v10 + v11)
-    v00, v01, v10, v11 = v00 + floor, v01 + floor, v10 + floor, v11 + floor
-    quarter_sum = 0.25 * (v00 + v01 + v10 + v11)
-    lit = quarter_sum > 0
-    safe_sum = np.where(lit, quarter_sum, 1.0)
     low, high = _bilinear_sub_weights(parts)
-    # Every sub-cell (i, j) of every leaf at once, in ``share``'s (leaf row, i, leaf
-    # column, j) layout: one pass over the finest level, not parts^2 small ones.
-    def leaf(x):
-        return x[:, None, :, None]
-
-    def sub(a, b):
-        return np.multiply.outer(a, b)[None, :, None, :]
-
-    mass = (leaf(v00) * sub(low, low) + leaf(v01) * sub(low, high)
-            + leaf(v10) * sub(high, low) + leaf(v11) * sub(high, high)) / leaf(safe_sum)
-    # A leaf with black corners is placed uniformly.
-    q = leaf(leaf_share) * np.where(leaf(lit), mass, 1.0 / parts ** 2)
-    second_moment = float(np.sum(np.divide(share * share, q, out=np.zeros_like(share), where=q > 0)))
+    # A block of leaf rows at a time: its temporaries stay in the cache (at depth 11 whole-level
+    # float64 temporaries are 32 MB each, and allocating and faulting them in cost more than the
+    # arithmetic).
+    step = max(1, _BLOCK_CELLS // (parts * n))
+    second_moment = 0.0
+    for r0 in range(0, m, step):
+        r1 = min(r0 + step, m)
+        # (leaf row, sub-row i, leaf column, sub-column j): every sub-cell of every leaf at once.
+        share = finest[r0 * parts:r1 * parts].astype(np.float64).reshape(r1 - r0, parts, m, parts)
+        share /= total
+        leaf_share = share.sum(axis=(1, 3))
+        c = corners[r0 * parts:r1 * parts + 1:parts, ::parts].astype(np.float64)
+        v = [c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]]
+        floor = CORNER_FLOOR * (v[0] + v[1] + v[2] + v[3])
+        v = [x + floor for x in v]
+        quarter_sum = 0.25 * (v[0] + v[1] + v[2] + v[3])
+        # A leaf with black corners is placed uniformly: as four equal corners.
+        lit = quarter_sum > 0
+        scale = leaf_share / np.where(lit, quarter_sum, 1.0)
+        v00, v01, v10, v11 = (np.where(lit, x, 1.0) * scale for x in v)
+        # q = leaf share x the bilinear mass of sub-cell (i, j), separable in i and j.
+        upper = v00[..., None] * low + v01[..., None] * high
+        lower = v10[..., None] * low + v11[..., None] * high
+        q = upper[:, None] * low[None, :, None, None] + lower[:, None] * high[None, :, None, None]
+        # q is 0 only in a leaf of zero share, whose cells' shares are 0 too.
+        np.square(share, out=share)
+        second_moment += float(np.sum(np.divide(share, q, out=np.zeros_like(q), where=q > 0)))
     return second_moment - 1.0
 
 
@@ -356,19 +371,25 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     m = corners.shape[0] // 2
     n = 2 * m
     corners = np.asarray(corners, dtype=np.float32)
-    leaf = [corners[:n, :n], corners[:n, 1:], corners[1:, :n], corners[1:, 1:]]
-    largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3]))
-    # value / largest first (at most 1), then the scale: 255 over a denormal largest
-    # would overflow float32. A black leaf (0 / 0) gets zeros.
-    safe = np.where(largest > 0, largest, np.float32(1.0))
-    words = np.zeros((n, n), dtype=np.uint32)
-    byte = np.empty((n, n), dtype=np.float32)
-    for shift, value in zip((0, 8, 16, 24), leaf):
-        np.divide(value, safe, out=byte)
-        byte *= np.float32(CORNER_LEVELS)
-        np.rint(byte, out=byte)
-        words |= byte.astype(np.uint32) << np.uint32(shift)
-    records = np.zeros((m, m, LEAF_RECORD_FLOATS), dtype=np.float32)
+    # Byte k of leaf (r, c)'s word is corner k: written as four uint8 planes of one
+    # (n, n, 4) array, read back as little-endian uint32 words. A block of rows at a
+    # time, on contiguous copies: numpy divides strided views several times slower.
+    packed = np.empty((n, n, 4), dtype=np.uint8)
+    step = max(1, _BLOCK_CELLS // max(n, 1))
+    for r0 in range(0, n, step):
+        block = corners[r0:min(r0 + step, n) + 1]
+        leaf = [np.ascontiguousarray(x) for x in (block[:-1, :n], block[:-1, 1:], block[1:, :n], block[1:, 1:])]
+        largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3]))
+        # value / largest first (at most 1), then the scale: 255 over a denormal largest
+        # would overflow float32. A black leaf (0 / 0) gets zeros.
+        largest[largest == 0] = 1.0
+        for k, value in enumerate(leaf):
+            np.divide(value, largest, out=value)
+            value *= np.float32(CORNER_LEVELS)
+            np.rint(value, out=value)
+            packed[r0:r0 + len(value), :, k] = value
+    words = packed.view("<u4")[..., 0]
+    records = np.empty((m, m, LEAF_RECORD_FLOATS), dtype=np.float32)
     records[..., :4] = finest_blocks.reshape(m, m, 4)
     # Leaf (2 I + a, 2 J + b) is child 2 a + b of record (I, J).
     records[..., 4:].view(np.uint32)[...] = words.reshape(m, 2, m, 2).transpose(0, 2, 1, 3).reshape(m, m, 4)
@@ -672,17 +693,46 @@ class EnvPyramid:
                 f"nbytes={self.nbytes}, build_time_s={self.build_time_s:.3f}]")
 
 
+class _FinestLevel:
+    """Level D's cell integrals (float64, (2^D, 2^D)) and corner radiance (float32, (2^D + 1,
+    2^D + 1)) of a map's uncompensated target; read-only (``_pyramid_arrays`` never writes them)."""
+
+    def __init__(self, luminance: np.ndarray, scale: float, depth: int) -> None:
+        n = 1 << depth
+        finest = scale * _phi_integrals(_theta_integrals(luminance, n), n)
+        corners = np.maximum(_corner_radiance(luminance, n) * np.float32(scale), 0.0)
+        self.arrays = (finest, corners)
+
+
+_finest_lock = threading.Lock()
+_finest_last: dict = {"key": None, "level": lambda: None}
+
+
+def _target_at_finest_level(luminance: np.ndarray, scale: float, depth: int) -> _FinestLevel:
+    """The map's level D, computed once for the compensated and the plain pyramid.
+
+    The integrators build both pyramids of a map at the same time, in two threads
+    (``ProductEnvironment``): the second takes the first's level while the first still holds
+    it (a weak reference: nothing stays alive after the builds), else computes its own."""
+    key = content_key(luminance, scale, depth)
+    with _finest_lock:
+        level = _finest_last["level"]() if _finest_last["key"] == key else None
+        if level is None:
+            level = _FinestLevel(luminance, scale, depth)
+            _finest_last.update(key=key, level=weakref.ref(level))
+        return level
+
+
 def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compensation: bool,
                     level_tolerance: float) -> dict:
     """The levels of :class:`EnvPyramid` from sanitised texel luminance, as a
     :mod:`~mitsuba_shsampling.build_cache` record: ``buffer`` (levels 0..D-1 in 4-float
     blocks), ``records`` (level D's leaf records), ``depth`` D after trimming,
     ``trimmed_levels``, ``total`` (the root), ``radiant_total`` and ``compensated``."""
-    n = 1 << depth
-    finest = scale * _phi_integrals(_theta_integrals(luminance, n), n)
+    level = _target_at_finest_level(luminance, scale, depth)  # kept alive for the other pyramid's build
+    finest, corners = level.arrays
     radiant_total = float(finest.sum(dtype=np.float64))
     compensated = False
-    corners = np.maximum(_corner_radiance(luminance, n) * np.float32(scale), 0.0)
     if mis_compensation and radiant_total > 0:
         # MIS compensation (Karlik et al. 2019): subtract the mean radiance
         # (cells have equal solid angle) so this strategy concentrates on
