@@ -3,7 +3,9 @@
 Dr.Jit 1.5 JIT-compiles through a system libLLVM. With LLVM <= 15 (Debian 12's
 default) the first float ``dr.minimum``/``dr.maximum`` aborts the whole
 process ("LLVM ERROR: Cannot select ... fminimum"), so the check has to happen
-at import time, where it can still raise a Python exception.
+before the first kernel, where it can still raise a Python exception: when the
+plugins are registered for an LLVM variant (at import, or at ``mi.set_variant``).
+The CUDA variants do not use libLLVM, so they neither need nor check it.
 
 Variants: the SH warps are Dr.Jit kernels and the estimators carry unpolarized
 radiance, so the JIT (``llvm_*``, ``cuda_*``) variants that are not polarized
@@ -91,3 +93,10 @@ def check_llvm_backend() -> tuple[int, int, int]:
             f"the process on float min/max; {INSTALL_HINT}."
         )
     return version
+
+
+def check_backend(variant: str | None) -> None:
+    """Raise :class:`BackendError` where ``variant`` is an LLVM one and Dr.Jit has no
+    usable libLLVM (:func:`check_llvm_backend`); other variants need nothing from it."""
+    if variant is not None and variant.startswith("llvm_"):
+        check_llvm_backend()

@@ -18,7 +18,7 @@ import importlib
 
 import mitsuba as mi
 
-from .._backend import VariantError, unsupported_variant_reason
+from .._backend import BackendError, VariantError, check_backend, unsupported_variant_reason
 
 #: Every plugin this package registers.
 PLUGIN_NAMES = ("sh_direct", "sh_path", "sh_prb", "oracle_direct")
@@ -47,9 +47,11 @@ def _plugin_classes() -> dict[str, type]:
             "sh_prb": sh_prb.SHPRBIntegrator, "oracle_direct": oracle_direct.OracleDirectIntegrator}
 
 
-def _refusal(reason: str):
+def _refusal(reason: str, error: type = VariantError):
+    message = reason if reason.startswith("mitsuba_shsampling:") else f"mitsuba_shsampling: {reason}"
+
     def refuse(props: mi.Properties):
-        raise VariantError(f"mitsuba_shsampling: {reason}")
+        raise error(message)
     return refuse
 
 
@@ -58,6 +60,7 @@ def register() -> None:
     that raise :class:`~mitsuba_shsampling.VariantError` under unsupported ones).
 
     :raises VariantError: no variant is set.
+    :raises BackendError: an LLVM variant is set and Dr.Jit has no usable libLLVM.
     """
     reason = unsupported_variant_reason(mi.variant())
     if mi.variant() is None:
@@ -66,6 +69,13 @@ def register() -> None:
         for name in PLUGIN_NAMES:
             mi.register_integrator(name, _refusal(reason))
         return
+    try:
+        check_backend(mi.variant())
+    except BackendError as error:
+        # Loading a plugin later says so too, rather than Mitsuba's "plugin not found".
+        for name in PLUGIN_NAMES:
+            mi.register_integrator(name, _refusal(str(error), BackendError))
+        raise
     for name, cls in _plugin_classes().items():
         mi.register_integrator(name, lambda props, cls=cls: cls(props))
 
