@@ -198,7 +198,7 @@ def test_a_cells_four_children_and_a_leaf_record_are_read_in_one_packet_gather(c
     """Dr.Jit reads adjacent values as one packet only from memory it maps at a 64-byte
     aligned address; the pyramid's arrays once mapped numpy's, 16 bytes past a page, so
     every children gather was four scalar gathers (a tenth of the product sample's time)."""
-    from mitsuba_shsampling.envmap.pyramid import PACKET_ALIGNMENT, aligned_floats
+    from mitsuba_shsampling.device_arrays import PACKET_ALIGNMENT, device_array
 
     pyramid = case["pyramid"]
     for level in (1, pyramid.depth - 1):  # a block of the upper levels, then a leaf record
@@ -213,7 +213,7 @@ def test_a_cells_four_children_and_a_leaf_record_are_read_in_one_packet_gather(c
         assert "gather_4xf32" in ir and "masked.gather.v" not in ir.replace("gather_4xf32", "")
     # The bits are kept: the records hold uint32 words in float32 slots.
     words = np.array([1, 0x7FC00001, 0x80000000, 0x007FFFFF], dtype=np.uint32)
-    np.testing.assert_array_equal(np.array(aligned_floats(words.view(np.float32))).view(np.uint32), words)
+    np.testing.assert_array_equal(np.array(device_array(mi.Float, words.view(np.float32))).view(np.uint32), words)
     assert PACKET_ALIGNMENT == 64
 
 

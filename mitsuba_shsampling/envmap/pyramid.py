@@ -36,6 +36,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..build_cache import cached_build, content_key
+from ..device_arrays import device_array
 from ..grid import TWO_PI
 
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
@@ -317,25 +318,6 @@ def block_offset(level):
     return 1 + (mi.UInt32(_BLOCK_COUNT_MASK) & ((mi.UInt32(1) << (2 * level)) - 1))
 
 
-PACKET_ALIGNMENT = 64
-"""Bytes to which memory that Dr.Jit maps from numpy must be aligned for it to read 2-8
-adjacent values in one packet gather (``dr.gather(mi.Vector4f, ...)``); from other memory
-each value is a gather of its own (checked in drjit-core 1.5: a mapped array is flagged
-unaligned unless its address is a multiple of 64). numpy's large arrays start 16 bytes past
-a page (glibc's allocation header), so they never were."""
-
-
-def aligned_floats(values: np.ndarray) -> mi.Float:
-    """``values`` as a ``mi.Float`` over a :data:`PACKET_ALIGNMENT`-aligned copy (the bits
-    unchanged), so that blocks of it are read in packet gathers."""
-    flat = np.ascontiguousarray(values, dtype=np.float32).ravel()
-    storage = np.empty(flat.size + PACKET_ALIGNMENT // flat.itemsize, dtype=np.float32)
-    start = (-storage.ctypes.data % PACKET_ALIGNMENT) // flat.itemsize
-    aligned = storage[start:start + flat.size]
-    aligned[...] = flat
-    return mi.Float(aligned)
-
-
 LEAF_RECORD_FLOATS = 8
 """Floats per leaf record: 32 bytes, two records to a cache line."""
 
@@ -539,7 +521,7 @@ class EnvPyramid:
             block = texels[y0:y0 + _CHUNK].astype(np.float64)
             if block.shape[2] == 4:
                 coefficients = block[..., :3].reshape(-1, 3).astype(np.float32)
-                mean = mi.srgb_model_mean(mi.Vector3f(coefficients[:, 0], coefficients[:, 1], coefficients[:, 2]))
+                mean = mi.srgb_model_mean(mi.Vector3f(*(device_array(mi.Float, coefficients[:, i]) for i in range(3))))
                 out[y0:y0 + _CHUNK] = np.asarray(mean.numpy(), dtype=np.float64).reshape(block.shape[:2]) \
                     * block[..., 3]
             else:
@@ -595,11 +577,11 @@ class EnvPyramid:
                           "where float32 cell integrals lose their precision: it is sampled as black, and "
                           "Mitsuba's own envmap sampling takes over", RuntimeWarning, stacklevel=3)
         #: Levels 0 .. D-1 in 4-float blocks (the class docstring's layout).
-        self.buffer: mi.Float = aligned_floats(buffer)
+        self.buffer: mi.Float = device_array(mi.Float, buffer)
         #: Level D with the sampling target (radiance, compensated like the cells) at its
         #: cells' corners, one :data:`LEAF_RECORD_FLOATS`-float record per level D-1 cell
         #: (:func:`leaf_records`): the bilinear density inside a leaf.
-        self.records: mi.Float = aligned_floats(records)
+        self.records: mi.Float = device_array(mi.Float, records)
         self.nbytes: int = buffer.nbytes + records.nbytes
         self.to_world: mi.AffineTransform4f = to_world
         self.to_local: mi.AffineTransform4f = to_world.inverse()

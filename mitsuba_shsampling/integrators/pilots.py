@@ -18,6 +18,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..device_arrays import device_array
 from ..frozen import collector_paused, held_inputs
 from ..report.metrics import pixel_variance
 from ..timing import kernel_time
@@ -98,7 +99,7 @@ def film_variance_factor(film: mi.Film, spp: int) -> float:
     rfilter = film.rfilter()
     radius = float(rfilter.radius())
     x = np.linspace(-radius, radius, 4097)
-    w = np.asarray(rfilter.eval(mi.Float(x.astype(np.float32))).numpy(), dtype=np.float64)
+    w = np.asarray(rfilter.eval(device_array(mi.Float, x)).numpy(), dtype=np.float64)
     ratio = np.mean(w * w) / (np.mean(w) ** 2 * 2 * radius)  # int w^2 / (int w)^2 on the even grid
     return ratio ** 2 / spp
 

@@ -18,6 +18,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..device_arrays import device_array
 from .estimators import environment_ray_target
 from .options import sample_shares
 from .strategy import Strategy
@@ -39,12 +40,12 @@ def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
     nx = max(1, min(width, int(round(math.sqrt(count * aspect)))))
     ny = max(1, min(height, int(round(count / nx))))
     ix, iy = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
-    position = mi.Point2f(ix.ravel().astype(np.float32), iy.ravel().astype(np.float32))
+    position = mi.Point2f(device_array(mi.Float, ix), device_array(mi.Float, iy))
     ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
     si = scene.ray_intersect(ray)
     bsdf = si.bsdf(ray)
     smooth = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-    keep = mi.UInt32(np.flatnonzero(np.broadcast_to(smooth.numpy(), (nx * ny,))).astype(np.uint32))
+    keep = device_array(mi.UInt32, np.flatnonzero(np.broadcast_to(smooth.numpy(), (nx * ny,))))
     return dr.gather(mi.SurfaceInteraction3f, si, keep), dr.gather(mi.BSDFPtr, bsdf, keep), nx * ny
 
 

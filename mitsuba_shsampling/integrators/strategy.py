@@ -20,6 +20,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..device_arrays import device_array
+
 
 class Strategy(enum.IntEnum):
     """How a lane samples the environment (the value is the per-lane code)."""
@@ -122,8 +124,10 @@ class StrategyTable:
         # At least two entries, so that the table is always an array in memory and
         # never a literal of the kernel (a literal would make each assignment a new kernel).
         codes = self._codes if self._size > 1 else np.append(self._codes, np.uint32(0))
-        self._device = mi.UInt32(codes)
+        self._device = device_array(mi.UInt32, codes)
         dr.make_opaque(self._device)
+        # Opaque too: the largest registry id changes with Mitsuba's parallel loading order.
+        self._device_size = dr.opaque(mi.UInt32, self._size)
 
     def assign(self, choice: dict[int, Strategy]) -> None:
         """Set the strategy of the materials in ``choice`` (registry id -> strategy)."""
@@ -140,5 +144,5 @@ class StrategyTable:
     def lane(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.UInt32:
         """Per lane: the strategy code of the BSDF at ``si`` (ENVIRONMENT where not ``active``)."""
         bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
-        active = mi.Bool(active) & (bsdf_id < self._size)
+        active = mi.Bool(active) & (bsdf_id < self._device_size)
         return dr.gather(mi.UInt32, self._device, bsdf_id, active)

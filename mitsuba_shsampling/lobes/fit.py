@@ -36,6 +36,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..device_arrays import device_array
+
 PHONG_EXPONENTS = np.geomspace(0.5, 4000.0, 32)
 """Candidate Phong exponents of the coarse search (log-spaced)."""
 
@@ -172,7 +174,7 @@ def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.
     view_index = (light_index // m_count) * azimuths + angle
 
     def gathered(table, index):
-        return dr.gather(mi.Vector3f, mi.Vector3f(table[:, 0], table[:, 1], table[:, 2]), index)
+        return dr.gather(mi.Vector3f, mi.Vector3f(*(device_array(mi.Float, table[:, i]) for i in range(3))), index)
 
     si = dr.zeros(mi.SurfaceInteraction3f, k_count * m_count * u_count)
     if mi.is_spectral:
@@ -182,7 +184,7 @@ def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.
     si.sh_frame = mi.Frame3f(mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0),
                              mi.Vector3f(0.0, 0.0, 1.0))
     uvs = np.asarray(uvs, dtype=np.float32)
-    si.uv = dr.gather(mi.Point2f, mi.Point2f(uvs[:, 0], uvs[:, 1]), uv_index)
+    si.uv = dr.gather(mi.Point2f, mi.Point2f(device_array(mi.Float, uvs[:, 0]), device_array(mi.Float, uvs[:, 1])), uv_index)
     si.wi = gathered(wi, view_index)
     light = gathered(wo, light_index * azimuths + angle)
     value = luminance(bsdf.eval(mi.BSDFContext(), si, light))

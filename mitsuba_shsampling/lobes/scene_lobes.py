@@ -30,6 +30,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..build_cache import cached_build, content_key
+from ..device_arrays import device_array
 from ..scene_materials import registry_id
 from ..sh.basis import MAX_ORDER
 from ..sh.zonal import RotatedZonalLobes, clamped_cosine_attenuation, phong_attenuation, rotate_zonal_lobes
@@ -236,16 +237,18 @@ class SceneLobes:
         # The exponent is stored as log(s) (interpolated in log space); unused
         # entries (zero energy) get log 1 = 0.
         table[..., 2] = np.log(np.maximum(table[..., 2], 1e-6))
-        self._table = mi.Float(table.astype(np.float32).ravel())
+        self._table = device_array(mi.Float, table)
         id_table = np.zeros(max(row_of_id, default=0) + 1, dtype=np.uint32)
         for key, row in row_of_id.items():
             id_table[key] = row
-        self._row_of_id = mi.UInt32(id_table)
+        self._row_of_id = device_array(mi.UInt32, id_table)
         #: Some BSDF's lobe is a clamped cosine (:func:`is_cosine_lobe`).
         self.has_cosine_lobes = bool(self.cosine_ids)
         self._rows = dict(row_of_id)
         self.sample_from_tables(self.cosine_ids)
-        self._row_of_id_size = len(id_table)
+        # Opaque: the largest registry id changes with the order in which Mitsuba's parallel
+        # loading creates the objects, and a literal would make the kernel new in such a process.
+        self._row_of_id_size = dr.opaque(mi.UInt32, len(id_table))
 
     def sample_from_tables(self, keys) -> None:
         """The cosine lobes (registry ids among :attr:`cosine_ids`) whose lanes are marked
@@ -256,7 +259,7 @@ class SceneLobes:
         flags = np.zeros(max(self._rows.values(), default=0) + 1, dtype=bool)
         for key in self.tabled_ids:
             flags[self._rows[key]] = True
-        self._cosine_row = mi.Bool(flags)
+        self._cosine_row = device_array(mi.Bool, flags)
 
     # -- Host side: fitting ---------------------------------------------------
 
@@ -315,7 +318,10 @@ class SceneLobes:
             return normal
         bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
         with dr.suspend_grad():  # the lobe steers the sampler; it carries no derivatives
-            for key_id, perturbed in self._perturbed.values():
+            # In the order of the BSDFs' names, not of their creation (which Mitsuba's parallel
+            # loading varies): the same kernel in every process.
+            for key in sorted(self._perturbed, key=lambda k: self.bsdfs_with_lobes[k].id()):
+                key_id, perturbed = self._perturbed[key]
                 mine = mi.Bool(active) & (bsdf_id == key_id)
                 normal = dr.select(mine, perturbed.local_normal(si, mine), normal)
         return normal

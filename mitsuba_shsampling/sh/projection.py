@@ -19,6 +19,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..device_arrays import device_array
+
 from .basis import sh_eval
 
 PROJECTION_CHUNK = 1 << 14
@@ -43,9 +45,8 @@ def quadrature_rule(n_z: int, n_phi: int) -> tuple:
     phi = 2 * math.pi * (np.arange(n_phi) + 0.5) / n_phi
     zz, pp = np.meshgrid(z, phi, indexing="ij")
     sin_theta = np.sqrt(np.maximum(0.0, 1.0 - zz * zz))
-    d = mi.Vector3f((sin_theta * np.cos(pp)).ravel(), (sin_theta * np.sin(pp)).ravel(),
-                    zz.ravel())
-    w = mi.Float(np.repeat(wz * (2 * math.pi / n_phi), n_phi))
+    d = mi.Vector3f(*(device_array(mi.Float, c) for c in (sin_theta * np.cos(pp), sin_theta * np.sin(pp), zz)))
+    w = device_array(mi.Float, np.repeat(wz * (2 * math.pi / n_phi), n_phi))
     return d, w
 
 
@@ -89,7 +90,7 @@ def project(func: Callable, n_bands: int, n_z: int | None = None,
     weighted = w.numpy().astype(np.float64) * values
     coeffs = np.zeros(n_bands * n_bands)
     for start in range(0, n_points, PROJECTION_CHUNK):
-        idx = mi.UInt32(np.arange(start, min(start + PROJECTION_CHUNK, n_points), dtype=np.uint32))
+        idx = dr.arange(mi.UInt32, start, min(start + PROJECTION_CHUNK, n_points))
         basis = sh_eval(dr.gather(mi.Vector3f, d, idx), n_bands - 1)
         dr.eval(basis)
         rows = np.stack([y.numpy() for y in basis]).astype(np.float64)

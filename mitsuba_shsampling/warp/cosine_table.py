@@ -39,7 +39,8 @@ import mitsuba as mi
 import numpy as np
 
 from ..build_cache import cached_build, content_key
-from ..envmap.pyramid import aligned_floats, block_offset, sum_pyramid_blocks
+from ..device_arrays import device_array
+from ..envmap.pyramid import block_offset, sum_pyramid_blocks
 from ..grid import Cell, grid_coordinates
 from .env_leaves import finish_pdf, finish_sample
 from .hierarchy import Split, walk_pdf_absolute, walk_sample_absolute
@@ -169,7 +170,7 @@ class CosineTable:
         self.pyramid = pyramid
         self.defensive_share = defensive_share
         world = bin_normals()
-        grid = pyramid.grid_from_world(mi.Vector3f(*(mi.Float(c.astype(np.float32)) for c in world.T)))
+        grid = pyramid.grid_from_world(mi.Vector3f(*(device_array(mi.Float, c) for c in world.T)))
         normals = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in (grid.x, grid.y, grid.z)], axis=1)
         if pyramid.is_black:
             blocks = sum_pyramid_blocks(np.full((len(world), 1 << TABLE_DEPTH, 1 << TABLE_DEPTH), 4.0**-TABLE_DEPTH))
@@ -178,7 +179,7 @@ class CosineTable:
             # The same map level, frame and share give the same tables (build_cache).
             blocks = cached_build("cosine_tables", content_key(cells, normals, float(defensive_share)), lambda: {
                 "blocks": sum_pyramid_blocks(mixture_tables(cells, normals, defensive_share))})["blocks"]
-        self.buffer = aligned_floats(blocks)
+        self.buffer = device_array(mi.Float, blocks)
         self.nbytes = 4 * dr.width(self.buffer)
         dr.eval(self.buffer)
 
