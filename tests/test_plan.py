@@ -146,6 +146,24 @@ def test_five_fresh_processes_make_one_plan_and_the_same_image(tmp_path):
         assert np.sqrt(np.mean((image - images[0]) ** 2)) / np.sqrt(np.mean(images[0] ** 2)) < 1e-4
 
 
+def test_the_plan_and_the_render_read_no_memory_whose_alignment_varies_from_run_to_run():
+    """An array that Dr.Jit maps from numpy at an address not a multiple of 64 is read with
+    'align 1' loads; numpy's addresses differ per process, so such a kernel was new to the
+    kernel cache in about half of fresh processes (seconds of set-up compiled again)."""
+    scene, sh = scene_of(), sh_direct()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        sh.plan(scene)
+        mi.render(scene, integrator=sh, spp=1)
+        kernels = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(kernels) > 10
+    unaligned = [k["hash"] for k in kernels if "align 1," in k["ir"].getvalue()]
+    assert unaligned == []
+
+
 # ------------------------------------------------------------ pinning
 
 def test_plan_is_made_before_the_first_render_and_the_render_keeps_it(monkeypatch):
