@@ -53,7 +53,7 @@ MATERIALS = {
 }
 
 
-def make_scene(environment=True, rotated=False, area_light=False, materials=MATERIALS):
+def make_scene(environment=True, rotated=False, area_light=False, materials=MATERIALS, sun_light=False):
     scene = {
         "type": "scene",
         "sensor": {
@@ -79,6 +79,13 @@ def make_scene(environment=True, rotated=False, area_light=False, materials=MATE
                           "to_world": mi.ScalarTransform4f().translate([1.5, -1.0, 2.5])
                           .rotate([1, 0, 0], 180).scale(0.5),
                           "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 20.0}}}
+    if sun_light:
+        # A Dirac light with a selection weight of its own: the scene draws it, the environment
+        # and the area light in proportions 1 : 2 : 4 (Mitsuba's `sampling_weight`).
+        scene["sun"] = {"type": "directional", "direction": [0.4, 0.5, -1.0], "sampling_weight": 0.5,
+                        "irradiance": {"type": "rgb", "value": 2.0}}
+        if area_light:
+            scene["light"]["emitter"]["sampling_weight"] = 2.0
     return mi.load_dict(scene)
 
 
@@ -124,6 +131,41 @@ def test_sh_direct_with_several_samples_per_strategy_is_unbiased():
     assert_unbiased(scene, mi.load_dict({"type": "sh_direct", "max_bands": BANDS,
                                          "emitter_samples": 2, "bsdf_samples": 3}),
                     mi.load_dict({"type": "path", "max_depth": 2}))
+
+
+@pytest.mark.parametrize("selection", ["each", "one"])
+def test_sh_direct_is_unbiased_with_a_sun_and_an_area_light_beside_the_environment(selection):
+    # `each`: one sample of the environment and one of the other lights, drawn among them
+    # by their weights; `one`: one emitter drawn as the scene draws it, then sampled.
+    scene = make_scene(rotated=True, area_light=True, sun_light=True,
+                       materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "roughplastic", "smooth")})
+    assert_unbiased(scene, mi.load_dict({"type": "sh_direct", "max_bands": BANDS, "emitter_selection": selection}),
+                    mi.load_dict({"type": "path", "max_depth": 2}))
+
+
+def test_sh_path_is_unbiased_with_a_sun_and_an_area_light_beside_the_environment():
+    scene = make_scene(rotated=True, area_light=True, sun_light=True,
+                       materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "roughplastic", "smooth")})
+    assert_unbiased(scene, mi.load_dict({"type": "sh_path", "max_bands": BANDS, "max_depth": 3}),
+                    mi.load_dict({"type": "path", "max_depth": 3}))
+
+
+@pytest.mark.parametrize("sun_light", [True, False])
+def test_emitter_samples_beside_the_environment_draw_the_other_lights_by_their_weights(sun_light):
+    # With the sun: weights 1 : 2 : 4; without: the environment and the area light, uniformly.
+    from mitsuba_shsampling.integrators.environment import EnvironmentState
+    scene = make_scene(area_light=True, sun_light=sun_light, materials={"diffuse": MATERIALS["diffuse"]})
+    env = EnvironmentState(scene)
+    u = dr.arange(mi.Float, 70000) / 70000.0
+    index = scene.sample_emitter(env.others.remap(u))[0].numpy()
+    emitters = scene.emitters()
+    counts = np.bincount(index, minlength=len(emitters)) / 70000.0
+    expected = (dr.zeros(mi.Float, len(emitters)) + scene.pdf_emitter(dr.arange(mi.UInt32, len(emitters)))).numpy()
+    assert sorted(expected.tolist()) == pytest.approx([1 / 7, 2 / 7, 4 / 7] if sun_light else [0.5, 0.5])
+    environment = [e is scene.environment() for e in emitters].index(True)
+    assert counts[environment] == 0.0
+    expected[environment] = 0.0
+    assert np.allclose(counts, expected / expected.sum(), atol=1e-4)
 
 
 @pytest.mark.parametrize("product_depth, area_light", [(1, False), (-1, False), (1, True)])

@@ -28,6 +28,7 @@ from typing import Callable, NamedTuple
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..envmap.emitter import EmitterDirections, compensated_copy
 from ..envmap.evaluated import EVALUATED_EMITTERS, is_evaluated, sky_components
@@ -60,6 +61,53 @@ def is_emitter(emitter: mi.EmitterPtr, which: mi.UInt32) -> mi.Bool:
     return dr.reinterpret_array(mi.UInt32, emitter) == which
 
 
+class OtherEmitterSelection(NamedTuple):
+    """Mitsuba's emitter selection (``Scene.sample_emitter``) restricted to every emitter but
+    the environment, each drawn in proportion to its own selection probability: the
+    environment's interval of the selection's cumulative distribution is cut out of the
+    1D sample (:meth:`remap`), and each emitter's pdf is divided by ``share``."""
+
+    share: mi.Float
+    """The other emitters' share of the scene's selection."""
+    start: mi.Float
+    """Where the environment's interval starts."""
+    skip: mi.Float
+    """The environment's selection probability (the interval's length)."""
+    below: mi.Float
+    """The largest sample the scene maps to an emitter before the environment (0: none)."""
+    above: mi.Float
+    """The smallest sample it maps to one after it (1: none)."""
+
+    @classmethod
+    def of(cls, scene: mi.Scene, index: int, pmf) -> OtherEmitterSelection | None:
+        """The selection of ``scene`` without its emitter ``index`` (``pmf``: the scene's
+        selection probabilities); None where the others have no share."""
+        start, share = float(np.sum(pmf[:index])), float(1.0 - pmf[index])
+        if share <= 0.0:
+            return None
+
+        def first_outside(value: float, towards: float, side) -> float:
+            # The sample's mapping is monotonic but computed in float32: step from the
+            # interval's end, one float at a time, to the first value the scene maps outside it.
+            value = np.float32(value)
+            for _ in range(64):
+                if side(int(scene.sample_emitter(mi.Float(float(value)))[0].numpy()[0])):
+                    return float(value)
+                value = np.nextafter(value, np.float32(towards))
+            raise RuntimeError("mitsuba_shsampling: could not find the environment's interval of the "
+                               "scene's emitter selection")
+
+        below = first_outside(start, 0.0, lambda i: i < index) if index > 0 else 0.0
+        above = first_outside(start + pmf[index], 1.0, lambda i: i > index) if index < len(pmf) - 1 else 1.0
+        return cls(*(dr.opaque(mi.Float, v) for v in (share, start, float(pmf[index]), below, above)))
+
+    def remap(self, u: mi.Float) -> mi.Float:
+        """``u`` (uniform in [0, 1)) mapped to where the scene's selection draws an emitter
+        other than the environment; it reprojects the sample for the chosen emitter."""
+        u = u * self.share
+        return dr.select(u >= self.start, dr.maximum(u + self.skip, self.above), dr.minimum(u, self.below))
+
+
 class EnvironmentState:
     """What every per-scene environment state has (:class:`ProductEnvironment`,
     the oracle's): the scene's environment emitter and its registry id, why this
@@ -77,6 +125,22 @@ class EnvironmentState:
     def __init__(self, scene: mi.Scene):
         self.emitter = scene.environment()
         self.emitter_id = emitter_id(self.emitter)
+        #: The environment's index among the scene's emitters and the probability with which
+        #: the scene draws it (``Scene.sample_emitter``), for ``emitter_selection`` ``one``;
+        #: opaque for the reason :func:`emitter_id` gives.
+        self.emitter_index = self.selection = None
+        #: Where this package samples the environment, Mitsuba's emitter sampling draws among
+        #: the other emitters only (:func:`~.estimators.mitsuba_nee`): how
+        #: (:class:`OtherEmitterSelection`; None where they have no share or there is no environment).
+        self.others = None
+        if self.emitter is not None:
+            emitters = scene.emitters()
+            index = next(i for i, e in enumerate(emitters) if e is self.emitter)
+            # (Under uniform selection Mitsuba answers with one value for every index.)
+            pmf = (dr.zeros(mi.Float, len(emitters)) + scene.pdf_emitter(dr.arange(mi.UInt32, len(emitters)))).numpy()
+            self.emitter_index = dr.opaque(mi.UInt32, index)
+            self.selection = dr.opaque(mi.Float, float(pmf[index]))
+            self.others = OtherEmitterSelection.of(scene, index, pmf)
         # A flag, not the emitters: an area emitter kept alive past its scene points at a
         # freed shape, and Mitsuba's virtual calls over every live emitter would reach it.
         self.has_other_emitters = any(e is not self.emitter for e in scene.emitters())
@@ -403,12 +467,15 @@ class ProductEnvironment(EnvironmentState):
                                  false_fn=lambda c, v: mi.Float(0.0))
         return dr.select(use_product, product_pdf, env_pdf)
 
-    def hit_pdf(self, emitter, strategy_pdf, emitter_pdf):
+    def hit_pdf(self, emitter, strategy_pdf, emitter_pdf, others_only: bool = True):
         """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the lane's
-        environment strategy (:meth:`pdf`) for the environment, Mitsuba's otherwise."""
+        environment strategy (:meth:`pdf`) for the environment, Mitsuba's otherwise
+        (``emitter_pdf``, drawn among the other emitters only where ``others_only``:
+        :func:`~.estimators.mitsuba_nee`)."""
         if not self.active:
             return emitter_pdf
-        return dr.select(self.is_environment(emitter), strategy_pdf, emitter_pdf)
+        others_pdf = emitter_pdf if self.others is None or not others_only else emitter_pdf / self.others.share
+        return dr.select(self.is_environment(emitter), strategy_pdf, others_pdf)
 
 class LaneLobe(NamedTuple):
     """The lobe proxy of each lane, in the two forms the product warp uses."""

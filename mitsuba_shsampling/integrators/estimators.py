@@ -84,7 +84,7 @@ def environment_sample(scene, si, bsdf, ctx, d: mi.Vector3f, pdf: mi.Float, acti
 
 
 def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, left_out, frac_e, frac_b,
-                           weight_one=False, differentiable: bool = False) -> mi.Spectrum:
+                           weight_one=False, differentiable: bool = False, selection_share=None) -> mi.Spectrum:
     """One sample of Mitsuba's emitter sampling, power-heuristic weighted
     against BSDF sampling (weight 1 for Dirac emitters and ``weight_one``
     lanes, which run no BSDF sample), in the ``smooth`` lanes.
@@ -93,9 +93,14 @@ def mitsuba_emitter_sample(scene, sample: mi.Point2f, si, bsdf, ctx, smooth, lef
     to another strategy of the lane (the environment, when a product or oracle
     strategy samples it), so this sample contributes nothing there.
 
+    ``selection_share``: ``sample.x`` draws among emitters whose share of the scene's
+    selection this is (:func:`mitsuba_nee`); Mitsuba's pdf is divided by it.
+
     ``differentiable``: as ``prb``, the sample is drawn without derivatives and the
     emitter's value evaluated again with them (and the BSDF's value with them)."""
     ds, em_weight = scene.sample_emitter_direction(si, sample, True, smooth)
+    if selection_share is not None:
+        ds.pdf, em_weight = ds.pdf / selection_share, em_weight * selection_share
     act = smooth & (ds.pdf != 0) & ~left_out(ds.emitter)
     with dr.resume_grad(when=differentiable):
         if differentiable:
@@ -208,7 +213,18 @@ def mitsuba_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, samp
             return env.is_environment(emitter) if sampled_here else mi.Bool(False)
         return sampled_here & env.is_environment(emitter)
 
-    return mitsuba_emitter_sample(scene, sampler.next_2d(smooth), si, bsdf, ctx, smooth, left_out,
+    u = sampler.next_2d(smooth)
+    if sampled_here is True and env.others is not None:
+        # Every lane samples the environment elsewhere: draw among the other emitters only
+        # (each emitter's pdf divided by their share, in hit_pdf too). Without this, Mitsuba's
+        # draw of the environment was a wasted sample: under an envmap and a sun the sun's
+        # estimate was 2x or 0, and sh_direct had 1.4x the variance of `direct`'s (which
+        # draws one or the other, never nothing).
+        u.x = env.others.remap(u.x)
+        return mitsuba_emitter_sample(scene, u, si, bsdf, ctx, smooth, left_out, frac_e, frac_b,
+                                      weight_one=weight_one, differentiable=differentiable,
+                                      selection_share=env.others.share)
+    return mitsuba_emitter_sample(scene, u, si, bsdf, ctx, smooth, left_out,
                                   frac_e, frac_b, weight_one=weight_one, differentiable=differentiable)
 
 
@@ -250,3 +266,46 @@ def emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carr
     In ``carries_all`` lanes no BSDF sample runs, so its weight is 1."""
     return mitsuba_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, env.active,
                        weight_one=carries_all, differentiable=differentiable)
+
+
+def selected_emitter_nee(env, scene, u: mi.Point2f, si, bsdf, ctx, *, lobe, use_product, smooth, carries_all,
+                         frac_e: float, frac_b: float) -> mi.Spectrum:
+    """One sample of one emitter in the ``smooth`` lanes: the emitter drawn as Mitsuba's
+    scene draws it (``Scene.sample_emitter``: uniformly, or by the emitters'
+    ``sampling_weight``), then the lane's environment strategy in ``env`` where that is
+    the environment and the emitter's own sampling elsewhere; one BSDF evaluation and
+    one shadow ray a sample (``emitter_selection`` ``one``, :func:`product_nee` plus
+    :func:`emitter_nee` being ``each``).
+
+    Each strategy's pdf is its emitter's selection probability times its direction's
+    pdf; the BSDF sample's weight uses the same (:meth:`~.environment.ProductEnvironment.hit_pdf`
+    with ``selection``). Weights as in :func:`product_nee` (``share`` in ``carries_all``
+    lanes, which run no BSDF sample, so 1 for other emitters there) and
+    :func:`mitsuba_emitter_sample` (1 for Dirac emitters)."""
+    smooth = mi.Bool(smooth)
+    index, _, u_x = scene.sample_emitter(u.x, smooth)
+    to_env = smooth & (index == env.emitter_index)
+    to_other = smooth & ~to_env
+    # The reprojected component keeps the environment strategy's 2D sample stratified.
+    d_env, pdf_env = dr.if_stmt(args=(lobe, mi.Point2f(u_x, u.y)), cond=to_env,
+                                true_fn=lambda c, v: env.sample_environment(c, v, use_product, carries_all),
+                                false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
+    pdf_env = pdf_env * env.selection
+    # The same sample.x draws the same emitter inside Mitsuba's call; visibility is tested below.
+    ds, em_weight = scene.sample_emitter_direction(si, u, False, to_other)
+    to_env &= pdf_env > 0
+    to_other &= ds.pdf != 0
+    d = dr.select(to_env, d_env, ds.d)
+    # (Each ray's origin is offset off the surface towards its own direction.)
+    ray, env_ray = si.spawn_ray_to(ds.p), si.spawn_ray(d_env)
+    ray.o, ray.d = dr.select(to_env, env_ray.o, ray.o), dr.select(to_env, env_ray.d, ray.d)
+    ray.maxt = dr.select(to_env, env_ray.maxt, ray.maxt)
+    act = to_env | to_other
+    bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, si.to_local(d), act)
+    act &= dr.any(bsdf_val != 0.0)
+    act &= ~scene.ray_test(ray, act)
+    radiance = scene.environment().eval(environment_ray_target(d, si.wavelengths), act & to_env)
+    weight_env = dr.select(carries_all, frac_e, mis_weight(pdf_env * frac_e, bsdf_pdf * frac_b))
+    weight_other = dr.select(ds.delta | carries_all, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
+    value = dr.select(to_env, radiance * (weight_env / pdf_env), em_weight * weight_other)
+    return dr.select(act, bsdf_val * value, 0.0)

@@ -259,10 +259,23 @@ class DirectOptions(ProductOptions):
         "Environment samples per shading point, drawn from the product of the BSDF lobe "
         "(in spherical harmonics, rotated per shading point) and the environment map")
     bsdf_samples: int = _bsdf_samples_field("")
+    emitter_selection: str = dataclasses.field(default="each", metadata=_doc(
+        "Where the scene has emitters besides the environment: ``each``, every emitter sample "
+        "is one sample of the environment (the material's strategy) plus one of Mitsuba's "
+        "emitter sampling for the others, two shadow rays; or ``one``, an emitter drawn as "
+        "Mitsuba's ``direct`` draws it (uniformly, or by the emitters' ``sampling_weight``), "
+        "then one sample of it, with the material's strategy where it is the environment: "
+        "one shadow ray. The same estimator in a scene lit by its environment alone."))
+
+    #: Values of ``emitter_selection``.
+    EMITTER_SELECTIONS: ClassVar[tuple] = ("each", "one")
 
     def _check_ranges(self) -> None:
         super()._check_ranges()
         self._check_sample_counts()
+        if self.emitter_selection not in self.EMITTER_SELECTIONS:
+            self._fail("emitter_selection", "must be one of "
+                       + ", ".join(f"'{v}'" for v in self.EMITTER_SELECTIONS), self.emitter_selection)
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -7,7 +7,8 @@ import mitsuba as mi
 
 from .chooser import StrategyChooser
 from .environment import ProductEnvironment
-from .estimators import bsdf_sample_of_emitters, dirac_sample_of_emitters, emitter_nee, first_hit, product_nee
+from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, emitter_nee, first_hit, product_nee,
+                         selected_emitter_nee)
 from .options import DirectOptions, document_parameters
 from .sharing import plan, planned_render, shared_planning
 
@@ -34,7 +35,9 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     material before the first pass. Strategy and BSDF samples are combined
     with the power heuristic using sample-count fractions, exactly as
     :monosp:`direct` combines its strategies. Other emitters (area, point,
-    ...) use Mitsuba's emitter sampling. Transmissive BSDFs have no product
+    directional, ...) use Mitsuba's emitter sampling, drawn among themselves (the
+    environment's share of Mitsuba's selection goes to its own sample), or with
+    ``emitter_selection`` ``one`` a single emitter per sample. Transmissive BSDFs have no product
     lobe and sample the environment alone (MIS-compensated); ``bumpmap`` and
     ``normalmap`` are product-sampled with their nested BSDF's lobe about the
     perturbed normal; delta BSDFs
@@ -88,18 +91,24 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         carries_all = env.carries_all(si, bsdf, smooth) if n_b > 0 else False
 
         # ------ Environment: product (or environment-alone) sampling; other emitters: Mitsuba's ------
+        # With other emitters and `emitter_selection` `one`, each sample draws one emitter first.
+        one_emitter = options.emitter_selection == "one" and env.active and env.has_other_emitters
         for _ in range(n_e):
-            L += product_nee(env, scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe=lobe,
-                             use_product=use_product, smooth=smooth, carries_all=carries_all,
-                             frac_e=frac_e, frac_b=frac_b) / n_e
-        for _ in range(n_e):
+            nee = selected_emitter_nee if one_emitter else product_nee
+            L += nee(env, scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe=lobe, use_product=use_product,
+                     smooth=smooth, carries_all=carries_all, frac_e=frac_e, frac_b=frac_b) / n_e
+        for _ in range(0 if one_emitter else n_e):
             L += emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
 
         # The emitter strategy of a BSDF-sampled direction: the lane's environment
-        # strategy for the environment, Mitsuba's sampling for other emitters.
+        # strategy for the environment (times its selection probability where one emitter
+        # is drawn), Mitsuba's sampling (its own selection included) for other emitters.
         def strategy_pdf(emitter, d, act, mitsuba_pdf):
             act = act & env.is_environment(emitter) if env.active else act
-            return env.hit_pdf(emitter, env.pdf(lobe, use_product, d, act), mitsuba_pdf)
+            env_pdf = env.pdf(lobe, use_product, d, act)
+            if one_emitter:
+                return env.hit_pdf(emitter, env_pdf * env.selection, mitsuba_pdf, others_only=False)
+            return env.hit_pdf(emitter, env_pdf, mitsuba_pdf)
 
 
         # ------- BSDF sampling (a further strategy sample where the strategy carries all) -------
