@@ -50,11 +50,11 @@ def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
 
 
 def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int, n_b: int,
-                    directions: int = DIRECTIONS, seed: int = 0, cosine_tables: bool = True) -> np.ndarray:
+                    directions: int = DIRECTIONS, seed: int = 0) -> np.ndarray:
     """Variance of the environment estimator at each shading point, per strategy.
 
-    With ``cosine_tables`` False the product of every lobe is its SH walk's, the cosine
-    lobes' included (else theirs is their table's, where the product has tables).
+    The product of a cosine lobe is its table's where the lobes say so
+    (:meth:`~..lobes.scene_lobes.SceneLobes.sample_from_tables`), else its SH walk's.
 
     Returns an array (points, 4), indexed by :class:`Strategy`: the variance
     (averaged over the colour channels, as the report's MSE is) of one lane's
@@ -73,12 +73,11 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     points = dr.width(si)
     if points == 0:
         return np.zeros((0, len(Strategy)))
-    samples = mixture_samples(env, si, bsdf, directions, seed, cosine_tables)
+    samples = mixture_samples(env, si, bsdf, directions, seed)
     return strategy_variances(samples, n_e, n_b, env.warp is not None, env.warp_plain is not None)
 
 
-def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directions: int, seed: int,
-                    cosine_tables: bool) -> dict:
+def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directions: int, seed: int) -> dict:
     """``directions`` directions per shading point from the equal mixture of
     :func:`frame_variances`, on the device; returns, on the host as (points,
     directions) float64 arrays, the integrand per channel (``channels``), the mixture's
@@ -99,7 +98,7 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
     plain = env.warp_plain is not None
     if product:
         coeffs, proxy, has_lobe = env.lobes.coefficients_and_proxy(si, env.pyramid.grid_from_world, True,
-                                                                   env.cosine_tables and cosine_tables)
+                                                                   env.cosine_tables)
     else:
         coeffs, proxy, has_lobe = None, None, mi.Bool(False)
 
