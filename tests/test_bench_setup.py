@@ -49,7 +49,9 @@ def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_plan_apar
     assert all(r["first_call_s"] > r["pass_s"] for r in runs if r["method"] == "sh_direct" or r["cache"] == "cold")
     sh = [r for r in runs if r["method"] == "sh_direct"]
     assert all(0 < r["state_s"] + r["choice_s"] <= r["plan_s"] < r["first_call_s"] for r in sh)
-    assert all(r["plan_mode"] == "estimate" and r["pyramid_build_s"] > 0 for r in sh)
+    assert all(r["pyramid_build_s"] > 0 for r in sh)
+    # Warm: the plan made cold is read from the cache folder.
+    assert [r["plan_mode"] for r in sh] == ["estimate", "kept"]
     # Warm: the builds come from the disk cache, so the state costs less than its cold build.
     assert sh[1]["state_s"] < sh[0]["state_s"]
     assert all(r["payback_s"] is None for r in runs if r["method"] == "direct")

@@ -219,7 +219,28 @@ def test_a_measured_plan_is_kept_like_wisdom_and_reused_by_the_next_process(monk
     forget_shared()
     chosen = count_calls(monkeypatch, chooser_module, "choose_strategies")
     again = sh_direct(plan="measure").plan(scene)
-    assert chosen == [] and again.mode == "file" and again.assignment() == measured.assignment()
+    assert chosen == [] and again.mode == "kept" and again.assignment() == measured.assignment()
+
+
+def test_an_estimated_plan_is_kept_for_the_next_process_and_a_new_cost_model_plans_again(monkeypatch, tmp_path):
+    monkeypatch.setenv("SHSAMPLING_CACHE_DIR", str(tmp_path))
+    scene = scene_of(("ggx", "diffuse"))
+    made = sh_direct().plan(scene)
+    assert made.mode == "estimate"
+    forget_shared()
+    build_cache.clear_in_process()
+    chosen = count_calls(monkeypatch, chooser_module, "choose_strategies")
+    kept = sh_direct().plan(scene)
+    assert chosen == [] and kept.mode == "kept"
+    # The same plan, with the predictions it was made with.
+    assert kept.as_dict()["materials"] == made.as_dict()["materials"]
+    assert kept.predicted_gain == made.predicted_gain and kept.lean == made.lean
+    # Other cost figures (a calibration of this machine) make another plan.
+    forget_shared()
+    other = costs.CostModel(**{**costs.SHIPPED_MODELS["direct"].as_dict(), "product_walk": 9.0, "source": "test"})
+    monkeypatch.setattr(chooser_module, "cost_model", lambda kind: other)
+    again = sh_direct().plan(scene)
+    assert len(chosen) == 1 and again.mode == "estimate" and again.costs["product_walk"] == 9.0
 
 
 def test_materials_named_in_strategy_keep_their_strategy_and_the_rest_are_planned():

@@ -54,7 +54,7 @@ from .pilots import (LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibra
                      film_variance_factor, frozen_pilots, measure_pass_costs)
 from .quadrature import camera_frames, frame_variances
 from . import plan_file
-from .strategy import ESTIMATE, MEASURE, Strategy
+from .strategy import ESTIMATE, MEASURE, Strategy, strategy_named
 
 REQUIRED_GAIN = 1.15
 """A product strategy must be predicted to beat the lean kernel by this factor at
@@ -131,7 +131,8 @@ class StrategyChoice:
     others with one walk their SH lobe: :func:`choose_cosine_sampling`)."""
     mode: str = ESTIMATE
     """How the plan was made: ``estimate`` (the cost model), ``measure`` (timed pilots in
-    the scene), or ``file`` (loaded from ``plan_file``)."""
+    the scene), ``file`` (loaded from ``plan_file``) or ``kept`` (made by an earlier process
+    for the same scene content, options and cost model, and read from the cache folder)."""
     costs: dict = dataclasses.field(default_factory=dict)
     """The cost model the plan was weighed with (:meth:`CostModel.as_dict`)."""
     setup_seconds: float = 0.0
@@ -503,9 +504,10 @@ def materials_report(env, p: Predictions, choice: dict, lean_choice: dict, varia
     return report
 
 
-def stored_choice(env, stored: dict) -> StrategyChoice:
+def stored_choice(env, stored: dict, mode: str = "file") -> StrategyChoice:
     """Apply a plan read from a file (:func:`.plan_file.load`) to ``env``; its
-    :class:`StrategyChoice` (``mode`` ``file``). It runs what the file says: the same
+    :class:`StrategyChoice` (``mode`` ``file``, or ``kept`` for a plan from the cache
+    folder), with the predictions the file holds. It runs what the file says: the same
     strategies, the same kernel (lean only where no material runs a product)."""
     choice = stored["strategies"]
     lean = stored["lean"] and not any(s.uses_product for s in choice.values())
@@ -519,11 +521,14 @@ def stored_choice(env, stored: dict) -> StrategyChoice:
     for key, strategy in choice.items():
         name = env.material_name(key)
         row = shown.get(name, {})
-        materials.append(MaterialChoice(name, strategy, row.get("share", 0.0), {}, row.get("predicted_gain", 1.0),
-                                        row.get("forced", False)))
-    return StrategyChoice(materials=materials, pass_time={}, predicted_gain=plan.get("predicted_gain", 1.0), lean=lean,
-                          seconds=0.0, cosine_tables=sorted(stored["cosine_tables"]), mode="file",
-                          costs=plan.get("costs", {}))
+        variance = {strategy_named(label): v for label, v in row.get("variance", {}).items()}
+        materials.append(MaterialChoice(name, strategy, row.get("share", 0.0), variance,
+                                        row.get("predicted_gain", 1.0), row.get("forced", False)))
+    pilot_variance = {k: (v["predicted"], v["measured"]) for k, v in plan.get("pilot_variance", {}).items()}
+    return StrategyChoice(materials=materials, pass_time=plan.get("pass_time_s", {}),
+                          predicted_gain=plan.get("predicted_gain", 1.0), lean=lean, seconds=0.0,
+                          shared_variance=plan.get("shared_variance", 0.0), pilot_variance=pilot_variance,
+                          cosine_tables=sorted(stored["cosine_tables"]), mode=mode, costs=plan.get("costs", {}))
 
 
 # ----------------------------------------------------------------- the integrators' planner
@@ -567,15 +572,22 @@ class StrategyChooser:
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         start = time.perf_counter()
-        file = self.plan_file or (plan_file.wisdom_path(scene, sensor, env.options_key) if self.mode == MEASURE
-                                  else "")
-        stored = plan_file.load(file, env, env.options_key) if file else None
+        if self.plan_file:
+            file, key = self.plan_file, env.options_key
+        else:
+            # Kept in the cache folder by the scene's content: a measured plan (FFTW's wisdom),
+            # and an estimated one with the cost model it was weighed with (a new calibration
+            # plans again). The same plan, without its pilots and quadrature (0.8-1.1 s on
+            # the studio), in every later process that renders the same scene.
+            key = env.options_key if self.mode == MEASURE else f"{env.options_key}; {cost_model(self.kind).key}"
+            file = plan_file.wisdom_path(scene, sensor, key)
+        stored = plan_file.load(file, env, key) if file else None
         if stored is not None:
-            env.choice = stored_choice(env, stored)
+            env.choice = stored_choice(env, stored, "file" if self.plan_file else "kept")
         else:
             env.choice = self._choose(env, scene, sensor, render, integrator)
             if file:
-                plan_file.save(file, env.choice, env.options_key)
+                plan_file.save(file, env.choice, key)
         env.choice.setup_seconds = env.build_seconds + time.perf_counter() - start
         mi.Log(mi.LogLevel.Info, f"{env.plugin}: plan ({env.choice.mode}, set-up {env.choice.setup_seconds:.2f} s): "
                                  f"{env.choice.summary()}")

@@ -72,6 +72,12 @@ class CostModel:
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    @property
+    def key(self) -> str:
+        """The figures as a plan kept in the cache folder is keyed by them (not where they
+        came from: the same figures give the same plan)."""
+        return "costs " + repr(sorted((k, v) for k, v in self.as_dict().items() if k != "source"))
+
     @classmethod
     def from_pass_times(cls, times: dict, shares: dict, source: str) -> "CostModel":
         """The model of timed pilot passes.

@@ -1,4 +1,4 @@
-"""Plans kept in files: ``plan_file``, and the measured plans kept like FFTW's wisdom.
+"""Plans kept in files: ``plan_file``, and plans kept in the cache folder like FFTW's wisdom.
 
 A plan file is JSON: the strategy of each material (by name), whether the kernel
 is lean, which cosine lobes read their tables, the options it was made with (every
@@ -8,10 +8,11 @@ and the same options; otherwise a new plan is made and the file rewritten (with 
 warning that says why). A loaded plan runs exactly what it says: the same
 strategies, the same kernel.
 
-With ``plan`` ``measure`` and no ``plan_file``, the plan is kept in the cache
-folder (:mod:`~mitsuba_shsampling.build_cache`) under a key of the scene's content
-(every traversed parameter, the film's size) and the options, so a scene measured
-once is planned the same way in every later process.
+Without a ``plan_file``, every plan is kept in the cache folder
+(:mod:`~mitsuba_shsampling.build_cache`) under a key of the scene's content (every
+traversed parameter, the film's size) and the options (and, for an estimated plan, the
+cost model's figures), so a scene planned once is planned the same way, without pilots
+or quadrature, in every later process (the plan's ``mode`` then reads ``kept``).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ FORMAT = 1
 
 
 def wisdom_path(scene: mi.Scene, sensor: mi.Sensor, options_key: str) -> str:
-    """Where a measured plan of this scene (content and film size) and these options is kept
+    """Where a plan of this scene (content and film size) and this ``options_key`` is kept
     ("" where the cache folder is off)."""
     folder = cache_folder()
     if not folder:
