@@ -38,9 +38,16 @@ def content_parts(obj: mi.Object) -> list:
     described = re.sub(r"0x[0-9a-fA-F]+|object_\d+", "", str(obj))
     # A sampler describes its last render's wavefront too: state, not content.
     described = re.sub(r"\n *(samples_per_wavefront|wavefront_size) = [^\n]*", "", described)
+    parameters = [(re.sub(r"object_\d+", "object", key), value) for key, value in readable_parameters(mi.traverse(obj))]
+    if isinstance(obj, mi.Scene):
+        # Mitsuba's parallel loading lists a scene's objects in another order in each process:
+        # the same scene must give the same key (its plan is kept by it). Each parameter's
+        # name says which object it belongs to, so sorting loses nothing that matters.
+        described = "\n".join(sorted(described.splitlines()))
+        parameters.sort(key=lambda item: item[0])
     parts = [obj.class_name(), described]
-    for key, value in readable_parameters(mi.traverse(obj)):
-        parts += [re.sub(r"object_\d+", "object", key), _host_value(value)]
+    for key, value in parameters:
+        parts += [key, _host_value(value)]
     return parts
 
 

@@ -30,7 +30,7 @@ from mitsuba_shsampling.integrators.options import OptionError  # noqa: E402
 from mitsuba_shsampling.integrators.sharing import forget_shared  # noqa: E402
 from mitsuba_shsampling.lobes import scene_lobes  # noqa: E402
 
-from test_integrators import MATERIALS, make_scene  # noqa: E402
+from test_integrators import MATERIALS, make_scene, sphere  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PLANNED = ("ggx", "diffuse", "roughplastic")
@@ -359,3 +359,26 @@ def test_a_device_array_read_for_a_content_key_leaves_the_scene_unchanged():
     content_parts(scene)
     assert sh.scenes.get(scene) is env
     assert dr.width(env.pyramid.buffer) > 0
+
+
+def test_a_scene_keeps_its_plan_key_whatever_order_its_objects_were_loaded_in():
+    """Mitsuba's parallel loading lists a scene's shapes in another order in each process;
+    the key that a kept plan is read by must not change with it (and must with the content)."""
+    from mitsuba_shsampling.build_cache import content_key
+    from mitsuba_shsampling.traversal import content_parts
+
+    spheres = {name: sphere([0.9 * i - 0.9, 0.0, 0.0], MATERIALS[name])
+               for i, name in enumerate(("ggx", "diffuse", "roughplastic"))}
+
+    def key_of(order, alpha=0.2):
+        parts = {"type": "scene", "env": {"type": "constant"}}
+        for name in order:
+            parts[name] = spheres[name]
+        parts["ggx"] = {**parts["ggx"], "bsdf": {**MATERIALS["ggx"], "alpha": alpha}}
+        scene = mi.load_dict(parts)
+        return [s.id() for s in scene.shapes()], content_key(*content_parts(scene))
+
+    order, key = key_of(("ggx", "diffuse", "roughplastic"))
+    other_order, same_key = key_of(("roughplastic", "ggx", "diffuse"))
+    assert order != other_order and key == same_key
+    assert key_of(("ggx", "diffuse", "roughplastic"), alpha=0.3)[1] != key
