@@ -12,10 +12,13 @@ ratio to the best of Mitsuba's two, and the mean's relative difference to ``dire
 (a bias check at this sample count, not a proof). ``sh_direct:each`` and
 ``sh_direct:one`` are the two ``emitter_selection`` designs (the same estimator where
 the map is the only emitter). The last column divides a case's ratio by the ``map``
-case's: how much of the map-only gain the added lights leave.
+case's: how much of the map-only gain the added lights leave. With ``--family path``
+the methods are ``path`` (with and without ``mis_compensation``) and ``sh_path`` at
+``--max-depth`` (the columns named after ``direct`` then mean ``path``).
 
     python3 scripts/bench_lights.py [--scene material_preview] [--res 320] [--spp 16]
-                                    [--passes 16] [--envmap FILE] [--json OUT.json]
+                                    [--passes 16] [--envmap FILE] [--family direct|path]
+                                    [--max-depth 3] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -54,9 +57,17 @@ def extra_lights(case: str) -> dict:
 
 CASES = ("map", "sun", "areas")
 MITSUBA = ("direct", "direct_misc")
-METHODS = {"direct": {"type": "direct"}, "direct_misc": {"type": "direct"},
-           "sh_direct:each": {"type": "sh_direct", "emitter_selection": "each"},
-           "sh_direct:one": {"type": "sh_direct", "emitter_selection": "one"}}
+
+
+def methods(args) -> dict:
+    """Method name -> integrator dict; the first two are Mitsuba's (:data:`MITSUBA`'s names,
+    ``direct_misc`` rendered on the compensated map)."""
+    if args.family == "path":
+        path = {"type": "path", "max_depth": args.max_depth}
+        return {"direct": path, "direct_misc": path, "sh_path": {"type": "sh_path", "max_depth": args.max_depth}}
+    return {"direct": {"type": "direct"}, "direct_misc": {"type": "direct"},
+            "sh_direct:each": {"type": "sh_direct", "emitter_selection": "each"},
+            "sh_direct:one": {"type": "sh_direct", "emitter_selection": "one"}}
 
 
 def scene_with(args, case: str, mis_compensation: bool):
@@ -76,7 +87,7 @@ def measure(args, case: str) -> dict:
     """Interleaved passes of every method on ``case``; a row per method."""
     import mitsuba as mi
     scenes = {False: scene_with(args, case, False), True: scene_with(args, case, True)}
-    runs = {name: (scenes[name == "direct_misc"], mi.load_dict(desc)) for name, desc in METHODS.items()}
+    runs = {name: (scenes[name == "direct_misc"], mi.load_dict(desc)) for name, desc in methods(args).items()}
     for scene, integrator in runs.values():
         mi.render(scene, integrator=integrator, spp=args.spp, seed=0)  # build, plan, compile
     images = {name: [] for name in runs}
@@ -99,7 +110,7 @@ def measure(args, case: str) -> dict:
     for name, row in rows.items():
         row["vs_best_mitsuba"] = row["efficiency"] / best
         row["time_vs_direct"] = row["pass_s"] / rows["direct"]["pass_s"]
-    for name in ("sh_direct:each", "sh_direct:one"):
+    for name in [n for n in runs if n.startswith("sh_")]:
         plan = runs[name][1].choice(scenes[False])
         rows[name]["plan"] = {m.name: m.strategy.label for m in plan.materials} if plan else None
     return rows
@@ -113,6 +124,8 @@ def main(argv=None) -> int:
     parser.add_argument("--passes", type=int, default=16)
     parser.add_argument("--envmap", help="lat-long map (default: the scene's own)")
     parser.add_argument("--cases", nargs="*", default=list(CASES), choices=CASES)
+    parser.add_argument("--family", choices=("direct", "path"), default="direct")
+    parser.add_argument("--max-depth", type=int, default=3)
     parser.add_argument("--json")
     args = parser.parse_args(argv)
 
@@ -132,7 +145,7 @@ def main(argv=None) -> int:
             print(f"{case:<6} {method:<15} {row['pass_s']:8.3f} {row['time_vs_direct']:9.2f} {row['variance']:10.4g} "
                   f"{row['max_pixel_variance']:10.4g} {row['vs_best_mitsuba']:7.2f} {of_map:>6} "
                   f"{row['mean_rel_diff']:+9.4f}")
-        for method in ("sh_direct:each", "sh_direct:one"):
+        for method in [m for m in rows if m.startswith("sh_")]:
             print(f"{'':6} {method}'s plan: {rows[method]['plan']}")
     if args.json:
         with open(args.json, "w") as f:
