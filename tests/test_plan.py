@@ -109,6 +109,30 @@ def test_a_calibration_of_other_code_is_not_read(tmp_path):
         os.remove(path)
 
 
+@pytest.mark.parametrize("cache", ["folder", "off"])
+def test_on_a_backend_without_shipped_figures_the_first_plan_calibrates_the_machine_once(monkeypatch, tmp_path,
+                                                                                         cache):
+    # As on a CUDA machine: the LLVM figures are not used there (issue 47: they priced the
+    # product into a loss on an H200). Timing itself is calibration.py's (its own test).
+    from mitsuba_shsampling import calibration
+    monkeypatch.setenv("SHSAMPLING_CACHE_DIR", str(tmp_path) if cache == "folder" else "off")
+    monkeypatch.setattr(costs, "SHIPPED_BACKENDS", ())
+    monkeypatch.setattr(costs, "_calibrated_here", {})
+    measured = costs.CostModel(product_code=0.3, environment_only=0.2, product_walk=4.0, product_table=4.0,
+                               product_only_walk=4.0, product_only_table=4.0, source="calibration")
+    runs = []
+
+    def calibrate(*args):
+        runs.append(args)
+        return {"direct": measured, "path": measured}, 2.0
+    monkeypatch.setattr(calibration, "calibrate", calibrate)
+    first, second = costs.cost_model("direct"), costs.cost_model("path")
+    assert len(runs) == 1 and first.product_walk == second.product_walk == 4.0
+    assert first.source == (costs.calibration_path() if cache == "folder" else "calibration")
+    choice = sh_direct().plan(scene_of())
+    assert len(runs) == 1 and choice.costs["product_walk"] == 4.0
+
+
 FRESH_PROCESS = """
 import json, sys
 import numpy as np

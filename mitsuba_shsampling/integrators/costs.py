@@ -131,6 +131,15 @@ SHIPPED_MODELS = {
 }
 SHIPPED = SHIPPED_MODELS["direct"]
 
+SHIPPED_BACKENDS = ("llvm",)
+"""Backends the shipped figures were measured on. On another (``cuda``) they mislead: on
+an H200 a plan priced with them put the product on eight studio materials under a sunset
+map and ran at 0.57x Mitsuba's efficiency (issue 47). There the first plan calibrates the
+machine (:func:`cost_model`)."""
+
+#: Calibrations made in this process where the cache folder is off (variant -> models).
+_calibrated_here: dict = {}
+
 
 def calibration_path(variant: str | None = None) -> str | None:
     """Where this machine's calibration for ``variant`` (default: the current one) is kept,
@@ -141,7 +150,10 @@ def calibration_path(variant: str | None = None) -> str | None:
 
 def cost_model(kind: str) -> CostModel:
     """The model of ``kind`` (``direct`` or ``path``): this machine's calibration where
-    one was made for this variant and package code, else the shipped one."""
+    one was made for this variant and package code, else the shipped one; on a backend
+    the shipped figures were not measured on (:data:`SHIPPED_BACKENDS`), a calibration
+    made now, once per machine (logged; kept in the cache folder, or in the process where
+    the folder is off)."""
     path = calibration_path()
     if path and os.path.exists(path):
         try:
@@ -152,7 +164,34 @@ def cost_model(kind: str) -> CostModel:
                 return CostModel(**{**figures, "source": path})
         except (OSError, ValueError, KeyError, TypeError):
             pass  # unreadable or foreign: the shipped model (a calibration never decides correctness)
-    return SHIPPED_MODELS[kind]
+    if backend_of(mi.variant()) in SHIPPED_BACKENDS:
+        return SHIPPED_MODELS[kind]
+    return calibrate_now(path)[kind]
+
+
+def backend_of(variant: str) -> str:
+    """``llvm`` or ``cuda`` (a JIT variant's first word)."""
+    return variant.split("_", 1)[0]
+
+
+def calibrate_now(path: str | None) -> dict:
+    """This machine's models, calibrated now (:func:`~mitsuba_shsampling.calibration.calibrate`),
+    kept at ``path`` (or in this process where there is none)."""
+    variant = mi.variant()
+    if variant in _calibrated_here:
+        return _calibrated_here[variant]
+    from ..calibration import calibrate
+
+    mi.Log(mi.LogLevel.Warn, f"mitsuba_shsampling: no shipped cost model for the {backend_of(variant)} backend: "
+                             "calibrating this machine once (python -m mitsuba_shsampling calibrate)")
+    models, seconds = calibrate()
+    if path:
+        save_calibration(models, seconds)
+        models = {kind: CostModel(**{**m.as_dict(), "source": path}) for kind, m in models.items()}
+    else:
+        _calibrated_here[variant] = models
+    mi.Log(mi.LogLevel.Info, f"mitsuba_shsampling: calibration took {seconds:.1f} s")
+    return models
 
 
 def save_calibration(models: dict, seconds: float, variant: str | None = None) -> str:
