@@ -150,6 +150,16 @@ def test_sh_path_is_unbiased_with_a_sun_and_an_area_light_beside_the_environment
                     mi.load_dict({"type": "path", "max_depth": 3}))
 
 
+@pytest.mark.parametrize("vertex", [1, 2])
+def test_oracle_path_is_unbiased_with_its_oracle_at_one_vertex(vertex):
+    # The reference behind sh_path's headroom at depth (scripts/bench_headroom.py).
+    scene = make_scene(rotated=True, area_light=True,
+                       materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "roughplastic", "smooth")})
+    assert_unbiased(scene, mi.load_dict({"type": "oracle_path", "max_depth": 3, "oracle_vertex": vertex,
+                                         "resolution": 8}),
+                    mi.load_dict({"type": "path", "max_depth": 3}))
+
+
 @pytest.mark.parametrize("sun_light", [True, False])
 def test_emitter_samples_beside_the_environment_draw_the_other_lights_by_their_weights(sun_light):
     # With the sun: weights 1 : 2 : 4; without: the environment and the area light, uniformly.
@@ -314,6 +324,9 @@ def test_integrators_load_from_xml_strings():
     ({"type": "sh_direct", "sh_depth": 20}, "sh_depth"),
     ({"type": "sh_direct", "sh_depth": 0}, "sh_depth"),
     ({"type": "sh_direct", "emitter_samples": 0, "bsdf_samples": 0}, "not both 0"),
+    ({"type": "sh_direct", "emitter_selection": "some"}, "emitter_selection"),
+    ({"type": "oracle_path", "max_depth": 3, "oracle_vertex": 3}, "oracle_vertex"),
+    ({"type": "oracle_path", "resolution": 24}, "resolution"),
 ])
 def test_bad_parameters_raise_clear_errors(props, message):
     with pytest.raises(Exception, match=message):

@@ -13,7 +13,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong  # noqa: E402
 from mitsuba_shsampling.integrators.options import (  # noqa: E402
-    DEFAULT_SH_DEPTH, MAX_BANDS, MIN_BANDS, DirectOptions, OptionError, PathOptions)
+    DEFAULT_SH_DEPTH, MAX_BANDS, MIN_BANDS, DirectOptions, OptionError, OraclePathOptions, PathOptions)
 from mitsuba_shsampling.lobes.scene_lobes import DIFFUSE_BANDS  # noqa: E402
 from mitsuba_shsampling.sh.basis import MAX_ORDER  # noqa: E402
 from mitsuba_shsampling.warp.hierarchy import MAX_DEPTH  # noqa: E402
@@ -121,7 +121,8 @@ def test_plugins_build_their_lobes_with_their_own_max_bands_default(plugin, opti
     assert integrator.options == options()
 
 
-@pytest.mark.parametrize("plugin, options", [("sh_direct", DirectOptions), ("sh_path", PathOptions)])
+@pytest.mark.parametrize("plugin, options", [("sh_direct", DirectOptions), ("sh_path", PathOptions),
+                                             ("oracle_path", OraclePathOptions)])
 def test_the_docstring_lists_every_parameter_with_its_default(plugin, options):
     doc = mi.load_dict({"type": plugin}).__doc__
     for field in dataclasses.fields(options):
@@ -130,7 +131,7 @@ def test_the_docstring_lists_every_parameter_with_its_default(plugin, options):
         assert f"(Default: {default})" in row.split("* -")[1], field.name
 
 
-@pytest.mark.parametrize("plugin", ["sh_direct", "sh_path", "sh_prb", "oracle_direct"])
+@pytest.mark.parametrize("plugin", ["sh_direct", "sh_path", "sh_prb", "oracle_direct", "oracle_path"])
 def test_the_docstring_examples_load_in_xml_and_python_with_the_same_parameters(plugin):
     doc = mi.load_dict({"type": plugin}).__doc__
     xml = doc[doc.index(f'<integrator type="{plugin}">'):doc.index("</integrator>") + len("</integrator>")]

@@ -3,8 +3,8 @@
 Mitsuba registrations are per variant. Importing :mod:`mitsuba_shsampling`
 calls :func:`register` for the active variant and installs a Mitsuba variant
 callback that calls it again after every ``mi.set_variant``, so ``sh_direct``,
-``sh_path``, ``sh_prb`` and ``oracle_direct`` are always known to ``mi.load_dict`` and the
-XML parser.
+``sh_path``, ``sh_prb`` and the references ``oracle_direct`` and ``oracle_path`` are always
+known to ``mi.load_dict`` and the XML parser.
 
 Under a variant the plugins cannot run on (scalar, polarized), all
 names are registered to a stub that raises
@@ -21,7 +21,7 @@ import mitsuba as mi
 from .._backend import BackendError, VariantError, check_backend, unsupported_variant_reason
 
 #: Every plugin this package registers.
-PLUGIN_NAMES = ("sh_direct", "sh_path", "sh_prb", "oracle_direct")
+PLUGIN_NAMES = ("sh_direct", "sh_path", "sh_prb", "oracle_direct", "oracle_path")
 
 _class_variant: str | None = None
 
@@ -35,16 +35,18 @@ def _plugin_classes() -> dict[str, type]:
     ``sh_prb``'s base class, Mitsuba's ``RBIntegrator``, is rebound by Mitsuba).
     """
     global _class_variant
-    from . import oracle_direct, sh_direct, sh_path, sh_prb
+    from . import oracle_direct, oracle_path, sh_direct, sh_path, sh_prb
 
     if _class_variant is not None and _class_variant != mi.variant():
         sh_direct = importlib.reload(sh_direct)
         sh_path = importlib.reload(sh_path)
         sh_prb = importlib.reload(sh_prb)
         oracle_direct = importlib.reload(oracle_direct)
+        oracle_path = importlib.reload(oracle_path)
     _class_variant = mi.variant()
     return {"sh_direct": sh_direct.SHDirectIntegrator, "sh_path": sh_path.SHPathIntegrator,
-            "sh_prb": sh_prb.SHPRBIntegrator, "oracle_direct": oracle_direct.OracleDirectIntegrator}
+            "sh_prb": sh_prb.SHPRBIntegrator, "oracle_direct": oracle_direct.OracleDirectIntegrator,
+            "oracle_path": oracle_path.OraclePathIntegrator}
 
 
 def _refusal(reason: str, error: type = VariantError):
@@ -56,7 +58,7 @@ def _refusal(reason: str, error: type = VariantError):
 
 
 def register() -> None:
-    """Register ``sh_direct``, ``sh_path``, ``sh_prb`` and ``oracle_direct`` for the current variant (as stubs
+    """Register the plugins (:data:`PLUGIN_NAMES`) for the current variant (as stubs
     that raise :class:`~mitsuba_shsampling.VariantError` under unsupported ones).
 
     :raises VariantError: no variant is set.

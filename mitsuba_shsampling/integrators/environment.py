@@ -121,6 +121,8 @@ class EnvironmentState:
     #: Environments without texels (``sunsky``, ``constant``) are sampled through their
     #: evaluated radiance (:mod:`~mitsuba_shsampling.envmap.evaluated`).
     samples_evaluated_emitters = False
+    #: This package samples the environment (subclasses set it once they know).
+    active = False
 
     def __init__(self, scene: mi.Scene):
         self.emitter = scene.environment()
@@ -159,6 +161,17 @@ class EnvironmentState:
     def is_environment(self, emitter: mi.EmitterPtr) -> mi.Bool:
         """Per-lane test: is ``emitter`` the environment map."""
         return is_emitter(emitter, self.emitter_id)
+
+    def hit_pdf(self, emitter, strategy_pdf, emitter_pdf, others_only: bool = True):
+        """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the lane's
+        environment strategy (:meth:`pdf`) for the environment, Mitsuba's otherwise
+        (``emitter_pdf``, drawn among the other emitters only where ``others_only``:
+        :func:`~.estimators.mitsuba_nee`)."""
+        if not self.active:
+            return emitter_pdf
+        others_pdf = emitter_pdf if self.others is None or not others_only else emitter_pdf / self.others.share
+        return dr.select(self.is_environment(emitter), strategy_pdf, others_pdf)
+
 
 class ProductEnvironment(EnvironmentState):
     """Environment sampling for one scene, with a strategy per material.
@@ -467,15 +480,6 @@ class ProductEnvironment(EnvironmentState):
                                  false_fn=lambda c, v: mi.Float(0.0))
         return dr.select(use_product, product_pdf, env_pdf)
 
-    def hit_pdf(self, emitter, strategy_pdf, emitter_pdf, others_only: bool = True):
-        """Emitter-strategy pdf of a BSDF-sampled ray that hit ``emitter``: the lane's
-        environment strategy (:meth:`pdf`) for the environment, Mitsuba's otherwise
-        (``emitter_pdf``, drawn among the other emitters only where ``others_only``:
-        :func:`~.estimators.mitsuba_nee`)."""
-        if not self.active:
-            return emitter_pdf
-        others_pdf = emitter_pdf if self.others is None or not others_only else emitter_pdf / self.others.share
-        return dr.select(self.is_environment(emitter), strategy_pdf, others_pdf)
 
 class LaneLobe(NamedTuple):
     """The lobe proxy of each lane, in the two forms the product warp uses."""

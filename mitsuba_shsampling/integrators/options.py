@@ -3,7 +3,8 @@ limits, validation, documentation.
 
 One frozen dataclass per plugin (:class:`DirectOptions`, :class:`PathOptions`,
 both extending :class:`ProductOptions`, the options of the product strategy;
-:class:`PRBOptions`, extending :class:`PathOptions`; :class:`OracleOptions`),
+:class:`PRBOptions`, extending :class:`PathOptions`; :class:`OracleOptions`,
+:class:`OraclePathOptions`),
 all extending :class:`PluginOptions`.
 Each field carries its documentation; the plugins' RST parameter tables are
 generated from it (:func:`document_parameters`), so code, checks and docs
@@ -380,6 +381,47 @@ class OracleOptions(PluginOptions):
 
     def _check_ranges(self) -> None:
         self._check_sample_counts()
+        try:
+            check_resolution(self.resolution)
+        except ValueError:
+            self._fail("resolution", f"must be a power of two in [2, {MAX_ORACLE_RESOLUTION}]", self.resolution)
+        try:
+            check_defensive_share(self.defensive_share)
+        except ValueError:
+            self._fail("defensive_share", "must be in (0, 1]", self.defensive_share)
+
+
+@dataclasses.dataclass(frozen=True)
+class OraclePathOptions(PluginOptions):
+    """Parameters of ``oracle_path``."""
+
+    PLUGIN: ClassVar[str] = "oracle_path"
+
+    EXAMPLE: ClassVar[dict] = {"max_depth": 4, "oracle_vertex": 2, "resolution": 32}
+
+    max_depth: int = dataclasses.field(default=4, metadata=_doc(
+        "Longest path, in vertices after the camera, as in Mitsuba's ``path`` (>= 2)."))
+    rr_depth: int = dataclasses.field(default=5, metadata=_doc(
+        "Path depth at which Russian roulette starts (> 0)."))
+    oracle_vertex: int = dataclasses.field(default=1, metadata=_doc(
+        "The one vertex of a path (1: the camera's first hit) whose environment sample is the "
+        "oracle's; every other vertex samples the environment alone (MIS-compensated), as "
+        "``sh_path``'s ``environment`` strategy does (0: no vertex: that strategy everywhere)."))
+    resolution: int = dataclasses.field(default=32, metadata=_doc(
+        f"Cells per side N of the oracle's table (a power of two in [2, {MAX_ORACLE_RESOLUTION}]): N^2 BSDF "
+        "evaluations per oracle vertex and about N^2 / 2 per oracle sample."))
+    defensive_share: float = dataclasses.field(default=DEFAULT_DEFENSIVE_SHARE, metadata=_doc(
+        "Share e of the environment's own distribution in the oracle (as ``oracle_direct``'s). In (0, 1]."))
+    hide_emitters: bool = dataclasses.field(default=False, metadata=_doc(
+        "Hide directly visible emitters."))
+
+    def _check_ranges(self) -> None:
+        if self.max_depth < 2:
+            self._fail("max_depth", "must be >= 2 (the oracle samples at a vertex)", self.max_depth)
+        if self.rr_depth <= 0:
+            self._fail("rr_depth", "must be > 0", self.rr_depth)
+        if not 0 <= self.oracle_vertex < self.max_depth:
+            self._fail("oracle_vertex", f"must be in [0, max_depth - 1 = {self.max_depth - 1}]", self.oracle_vertex)
         try:
             check_resolution(self.resolution)
         except ValueError:

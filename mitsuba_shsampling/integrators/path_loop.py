@@ -48,6 +48,9 @@ class PathSettings:
     """Emitters seen directly by the camera are not rendered."""
     label: str
     """The loop's name in Dr.Jit's kernels and messages."""
+    product_from: int = 0
+    """Vertices before this one (counted from 0, the first hit) never use the product
+    (``oracle_path``: its oracle at one vertex only)."""
 
 
 # Equal fractions: one environment sample and one BSDF sample per vertex (the power
@@ -136,6 +139,7 @@ def trace_paths(mode: dr.ADMode, scene: mi.Scene, env, sampler: mi.Sampler, ray:
     ctx = mi.BSDFContext()
     # Plain locals: inside the loop, dr.syntax would take an attribute read for loop state.
     max_depth, rr_depth, product_depth = settings.max_depth, settings.rr_depth, settings.product_depth
+    product_from = settings.product_from
     hide_emitters, label = settings.hide_emitters, f"{settings.label} ({mode.name})"
     occlusion_ends_paths = not has_emitting_shapes(scene)
 
@@ -161,7 +165,10 @@ def trace_paths(mode: dr.ADMode, scene: mi.Scene, env, sampler: mi.Sampler, ray:
 
         # Next-event estimation; the product only at the first product_depth vertices.
         smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        lobe, use_product = env.lobe(si, smooth & (depth < product_depth))
+        product_lanes = smooth & (depth < product_depth)
+        if dr.hint(product_from > 0, mode="scalar"):  # (no comparison traced where it is 0)
+            product_lanes &= depth >= product_from
+        lobe, use_product = env.lobe(si, product_lanes)
         # The BSDF sample always runs (it continues the path): no lane carries all.
         Lr_env = product_nee(env, scene, sampler.next_2d(active), si, bsdf, ctx, lobe=lobe,
                              use_product=use_product, smooth=smooth, carries_all=False, frac_e=FRACTION,
