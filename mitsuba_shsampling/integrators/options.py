@@ -128,6 +128,17 @@ class PluginOptions:
             raise OptionError(f"{self.PLUGIN}: parameters 'emitter_samples' and 'bsdf_samples' "
                               "must be >= 0 and not both 0, got 0 and 0")
 
+    def _check_oracle(self) -> None:
+        """``resolution`` and ``defensive_share`` (of the oracle references)."""
+        try:
+            check_resolution(self.resolution)
+        except ValueError:
+            self._fail("resolution", f"must be a power of two in [2, {MAX_ORACLE_RESOLUTION}]", self.resolution)
+        try:
+            check_defensive_share(self.defensive_share)
+        except ValueError:
+            self._fail("defensive_share", "must be in (0, 1]", self.defensive_share)
+
     @classmethod
     def from_properties(cls, props):
         """Options from a plugin's ``mi.Properties``: the parameters it sets, defaults
@@ -381,14 +392,7 @@ class OracleOptions(PluginOptions):
 
     def _check_ranges(self) -> None:
         self._check_sample_counts()
-        try:
-            check_resolution(self.resolution)
-        except ValueError:
-            self._fail("resolution", f"must be a power of two in [2, {MAX_ORACLE_RESOLUTION}]", self.resolution)
-        try:
-            check_defensive_share(self.defensive_share)
-        except ValueError:
-            self._fail("defensive_share", "must be in (0, 1]", self.defensive_share)
+        self._check_oracle()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -422,14 +426,7 @@ class OraclePathOptions(PluginOptions):
             self._fail("rr_depth", "must be > 0", self.rr_depth)
         if not 0 <= self.oracle_vertex < self.max_depth:
             self._fail("oracle_vertex", f"must be in [0, max_depth - 1 = {self.max_depth - 1}]", self.oracle_vertex)
-        try:
-            check_resolution(self.resolution)
-        except ValueError:
-            self._fail("resolution", f"must be a power of two in [2, {MAX_ORACLE_RESOLUTION}]", self.resolution)
-        try:
-            check_defensive_share(self.defensive_share)
-        except ValueError:
-            self._fail("defensive_share", "must be in (0, 1]", self.defensive_share)
+        self._check_oracle()
 
 
 def parameter_table(options_cls: type[PluginOptions], indent: str = "") -> str:
