@@ -20,6 +20,7 @@ from .sh.basis import sh_eval  # noqa: E402
 from .frozen import freeze  # noqa: E402
 from .integrators import register  # noqa: E402
 from .integrators import _register_for_new_variant  # noqa: E402
+from . import calibration  # noqa: E402,F401  (a plan on a backend without shipped costs calibrates through it)
 
 if mi.variant() is not None:
     register()

@@ -19,7 +19,7 @@ import dataclasses
 import statistics
 import time
 
-from .command_line import set_variant
+from .integrators.costs import set_calibrator
 
 CALIBRATION_SCENE = "material_studio"
 """The built-in scene the calibration times: ten materials (glossy, diffuse, textured,
@@ -91,10 +91,19 @@ def calibrate(runs: int = 1, res: int = CALIBRATION_RES) -> tuple[dict, float]:
     return models, time.perf_counter() - start
 
 
-def main(args) -> int:
+# A plan on a backend without shipped figures calibrates the machine through this (late bound:
+# tests replace `calibrate`).
+set_calibrator(lambda: calibrate())
+
+
+def main(args, set_variant) -> int:
+    """The ``calibrate`` command; ``set_variant(name)`` sets the variant or says why not
+    (:func:`~mitsuba_shsampling.command_line.set_variant`, passed in by the CLI, which sits above)."""
     set_variant(args.variant)
-    import mitsuba_shsampling  # noqa: F401  (registers the plugins)
+    from .integrators import register
     from .integrators.costs import save_calibration
+
+    register()
 
     models, seconds = calibrate(max(1, args.runs), args.res)
     fields = [f.name for f in dataclasses.fields(type(models["direct"])) if f.name != "source"]

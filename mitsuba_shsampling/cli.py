@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mitsuba-shsampling`` console script; returns the exit code."""
     args = build_parser().parse_args(argv)
     commands = {"compare": _compare, "bench": _bench, "render": lambda a: render.main(a, set_variant),
-                "sweep": sweep.command, "calibrate": calibration.main}
+                "sweep": sweep.command, "calibrate": lambda a: calibration.main(a, set_variant)}
     try:
         return commands[args.command](args)
     except UsageError as err:

@@ -401,7 +401,8 @@ def test_a_scene_whose_materials_run_different_strategies_is_unbiased():
     assert_unbiased(scene, sh, mi.load_dict({"type": "path", "max_depth": 2}))
 
 
-def test_auto_chooses_before_the_first_pass_and_reports_every_material():
+def test_auto_chooses_before_the_first_pass_and_reports_every_material(monkeypatch, tmp_path):
+    monkeypatch.setenv("SHSAMPLING_CACHE_DIR", str(tmp_path))  # planned here, not read from another test's plan
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse")})

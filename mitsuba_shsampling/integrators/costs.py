@@ -140,6 +140,16 @@ machine (:func:`cost_model`)."""
 #: Calibrations made in this process where the cache folder is off (variant -> models).
 _calibrated_here: dict = {}
 
+#: What calibrates this machine (:func:`mitsuba_shsampling.calibration.calibrate`, set by that
+#: module, which sits above the integrators): returns (kind -> model, seconds).
+_calibrator = None
+
+
+def set_calibrator(calibrator) -> None:
+    """Set what :func:`calibrate_now` calls (``calibrator()`` -> (kind -> model, seconds))."""
+    global _calibrator
+    _calibrator = calibrator
+
 
 def calibration_path(variant: str | None = None) -> str | None:
     """Where this machine's calibration for ``variant`` (default: the current one) is kept,
@@ -180,11 +190,12 @@ def calibrate_now(path: str | None) -> dict:
     variant = mi.variant()
     if variant in _calibrated_here:
         return _calibrated_here[variant]
-    from ..calibration import calibrate
-
+    if _calibrator is None:
+        raise RuntimeError(f"mitsuba_shsampling: no cost model for the {backend_of(variant)} backend: run "
+                           f"'python -m mitsuba_shsampling calibrate --variant {variant}' once on this machine")
     mi.Log(mi.LogLevel.Warn, f"mitsuba_shsampling: no shipped cost model for the {backend_of(variant)} backend: "
                              "calibrating this machine once (python -m mitsuba_shsampling calibrate)")
-    models, seconds = calibrate()
+    models, seconds = _calibrator()
     if path:
         save_calibration(models, seconds)
         models = {kind: CostModel(**{**m.as_dict(), "source": path}) for kind, m in models.items()}
