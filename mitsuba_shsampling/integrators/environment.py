@@ -88,10 +88,11 @@ class OtherEmitterSelection(NamedTuple):
 
         def first_outside(value: float, towards: float, side) -> float:
             # The sample's mapping is monotonic but computed in float32: step from the
-            # interval's end, one float at a time, to the first value the scene maps outside it.
+            # interval's end, one float at a time, to the first value the scene maps outside it
+            # (an opaque value: one small kernel for every probe and scene, not one each).
             value = np.float32(value)
             for _ in range(64):
-                if side(int(scene.sample_emitter(mi.Float(float(value)))[0].numpy()[0])):
+                if side(int(scene.sample_emitter(dr.opaque(mi.Float, float(value)))[0].numpy()[0])):
                     return float(value)
                 value = np.nextafter(value, np.float32(towards))
             raise RuntimeError("mitsuba_shsampling: could not find the environment's interval of the "
