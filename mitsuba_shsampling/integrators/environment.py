@@ -39,7 +39,7 @@ from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from ..warp.sky_mixture import SkyMixture
-from .options import OptionError, ProductOptions
+from .options import DEFAULT_BSDF_DEFENSIVE_SHARE, OptionError, ProductOptions
 from .strategy import AUTO, Strategy, StrategyTable, strategy_named
 
 
@@ -220,6 +220,11 @@ class ProductEnvironment(EnvironmentState):
         self.has_dirac_materials = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Delta)
                                        for m in self._materials.values())
         self.carry_all = carry_all
+        #: The BSDF's share in ``product_only``'s mixture (``bsdf_defensive_share``, a parameter
+        #: of ``sh_direct``, the plugin whose lanes may carry every sample; options without it
+        #: take its default).
+        self.bsdf_share = (getattr(options, "bsdf_defensive_share", DEFAULT_BSDF_DEFENSIVE_SHARE)
+                           if carry_all else 0.0)
         #: Trace the cosine tables' and the SH walk's code whatever the materials run (the
         #: chooser's pilot passes: :func:`~.chooser.measure_pass_costs`).
         self.pilot_walks = False
@@ -451,16 +456,67 @@ class ProductEnvironment(EnvironmentState):
         return dr.if_stmt(args=(u,), cond=plain, true_fn=self.env_plain.sample,
                           false_fn=self.env_directions.sample)
 
-    def sample_environment(self, lobe, u: mi.Point2f, use_product, carries_all):
+    def sample_environment(self, lobe, u: mi.Point2f, use_product, carries_all, bsdf_draw=None):
         """(direction, exact pdf) of one sample of the lane's environment strategy: the
         product (:meth:`sample_product`) in ``use_product`` lanes, the environment alone
         elsewhere, from the uncompensated map in ``carries_all`` lanes. Symbolic
-        branches: a SIMD packet runs only the walks its lanes need."""
+        branches: a SIMD packet runs only the walks its lanes need.
+
+        Given ``bsdf_draw`` (:class:`BSDFDraw`), the lanes of ``product_only``'s mixture
+        (:meth:`mixes_bsdf`) draw from (1 - b) product + b BSDF (b: :attr:`bsdf_share`);
+        there the pdf returned is the *product's* at the direction (0 where the BSDF's
+        draw failed), which :meth:`carried_weight` turns into the mixture's."""
         if self.warp is None:
             return self.sample_alone(u, carries_all)
-        return dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
-                          true_fn=lambda c, v: self.sample_product(c, v, carries_all),
-                          false_fn=lambda c, v: self.sample_alone(v, carries_all))
+        mixes = self.mixes_bsdf(lobe, use_product, carries_all) if bsdf_draw is not None else False
+        chose_bsdf = mixes & (bsdf_draw.u_choice < self.bsdf_share) if mixes is not False else mi.Bool(False)
+        d, pdf = dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product) & ~chose_bsdf,
+                            true_fn=lambda c, v: self.sample_product(c, v, carries_all),
+                            false_fn=lambda c, v: self.sample_alone(v, carries_all))
+        if mixes is False:
+            return d, pdf
+        draw = bsdf_draw
+        # The BSDF's draw reuses the 2D sample and the choice rescaled (both uniform there).
+        bs, _ = draw.bsdf.sample(draw.ctx, draw.si, draw.u_choice / self.bsdf_share, u, chose_bsdf)
+        drew = chose_bsdf & (bs.pdf > 0)
+        d_bsdf = draw.si.to_world(bs.wo)
+        # The product's pdf of the BSDF's direction: one walk, in the packets that drew one.
+        pdf_bsdf = dr.if_stmt(args=(lobe, d_bsdf), cond=drew,
+                              true_fn=lambda c, v: self.warp_plain.pdf(c.coeffs, v, c.proxy),
+                              false_fn=lambda c, v: mi.Float(0.0))
+        return dr.select(drew, d_bsdf, d), dr.select(chose_bsdf, pdf_bsdf, pdf)
+
+    def mixes_bsdf(self, lobe, use_product, carries_all):
+        """Per lane: the sample is ``product_only``'s mixture with the BSDF, a lane of that
+        strategy whose lobe is walked in SH; False (nothing traced) where no material runs
+        such a lane. A lobe read from the cosine tables is the BSDF's exact shape (a
+        clamped cosine about the normal), so its product bounds the samples' values by
+        itself there."""
+        if not self.draws_bsdf or carries_all is False:
+            return False
+        cosine = lobe.proxy.cosine_only if lobe.proxy is not None else False
+        return mi.Bool(use_product) & carries_all & ~mi.Bool(cosine)
+
+    @property
+    def draws_bsdf(self) -> bool:
+        """``product_only``'s mixture has a BSDF share and some material runs it with an SH
+        lobe (or the chooser's pilots trace every walk): only then is its code traced."""
+        if self.bsdf_share <= 0 or self.warp_plain is None or self.strategies is None:
+            return False
+        return self.pilot_walks or any(self.strategies.of(key) == Strategy.PRODUCT_ONLY
+                                       and not self.samples_from_cosine_table(key)
+                                       for key in self.strategies.ids)
+
+    def carried_weight(self, lobe, product_pdf, bsdf_pdf, use_product, carries_all):
+        """Per lane, the factor that makes a ``carries_all`` sample's value (BSDF x radiance
+        / ``product_pdf``) that of ``product_only``'s mixture (:meth:`sample_environment`):
+        ``product_pdf`` / ((1 - b) ``product_pdf`` + b ``bsdf_pdf``) where the lane
+        :meth:`mixes_bsdf`, 1 elsewhere."""
+        mixes = self.mixes_bsdf(lobe, use_product, carries_all)
+        if mixes is False:
+            return 1.0
+        mixture = (1.0 - self.bsdf_share) * product_pdf + self.bsdf_share * bsdf_pdf
+        return dr.select(mixes & (mixture > 0), product_pdf / mixture, 1.0)
 
     def pdf(self, lobe, use_product, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
         """Pdf of world direction ``d`` under the lane's environment strategy: the
@@ -480,6 +536,16 @@ class ProductEnvironment(EnvironmentState):
                                  true_fn=lambda c, v: self.warp.pdf(c.coeffs, v, c.proxy),
                                  false_fn=lambda c, v: mi.Float(0.0))
         return dr.select(use_product, product_pdf, env_pdf)
+
+
+class BSDFDraw(NamedTuple):
+    """What ``product_only``'s BSDF share draws with (:meth:`ProductEnvironment.sample_environment`)."""
+
+    si: mi.SurfaceInteraction3f
+    bsdf: mi.BSDFPtr
+    ctx: mi.BSDFContext
+    u_choice: mi.Float
+    """A uniform sample: below the share, the BSDF draws (and this, rescaled, picks its component)."""
 
 
 class LaneLobe(NamedTuple):

@@ -51,6 +51,11 @@ DEFAULT_REBUILD_INTERVAL = 64
 
 DEFAULT_SH_DEPTH = SH_DEPTH_WITH_PROXY
 
+# The BSDF's share in product_only's mixture: the environment's own share in the product's
+# (DEFAULT_DEFENSIVE_SHARE), for the same reason on the other factor, chosen before it was
+# measured (docs/MEASUREMENTS.md, "A BSDF share in product_only").
+DEFAULT_BSDF_DEFENSIVE_SHARE = 0.1
+
 
 class OptionError(ValueError):
     """A plugin parameter of the wrong type or out of range; the message is one line
@@ -279,12 +284,21 @@ class DirectOptions(ProductOptions):
         "then one sample of it, with the material's strategy where it is the environment: "
         "one shadow ray. The same estimator in a scene lit by its environment alone."))
 
+    bsdf_defensive_share: float = dataclasses.field(default=DEFAULT_BSDF_DEFENSIVE_SHARE, metadata=_doc(
+        "Share b of the BSDF's own sampling in ``product_only``, which draws each sample from "
+        "(1 - b) product + b BSDF. Where the lobe proxy misses part of the BSDF (the grazing "
+        "peak of a rough coating), no BSDF sample runs in that strategy to find it: this share "
+        "bounds its samples' values there (by the BSDF sample's weight times the radiance / b). "
+        "In [0, 1); 0 switches it off."))
+
     #: Values of ``emitter_selection``.
     EMITTER_SELECTIONS: ClassVar[tuple] = ("each", "one")
 
     def _check_ranges(self) -> None:
         super()._check_ranges()
         self._check_sample_counts()
+        if not 0.0 <= self.bsdf_defensive_share < 1.0:
+            self._fail("bsdf_defensive_share", "must be in [0, 1)", self.bsdf_defensive_share)
         if self.emitter_selection not in self.EMITTER_SELECTIONS:
             self._fail("emitter_selection", "must be one of "
                        + ", ".join(f"'{v}'" for v in self.EMITTER_SELECTIONS), self.emitter_selection)

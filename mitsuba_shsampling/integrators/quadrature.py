@@ -129,6 +129,11 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
     p_plain = dr.select(has_lobe, env.warp_plain.pdf(coeffs, d, proxy), 0.0) if plain else mi.Float(0.0)
     mixture = 0.2 * (p_bsdf + p_env + p_plain_env + dr.select(has_lobe, p_product, p_env)
                      + dr.select(has_lobe & plain, p_plain, p_env))
+    # product_only draws from its mixture with the BSDF where its lobe is walked in SH
+    # (ProductEnvironment.sample_environment): the strategy's pdf is that mixture's.
+    if plain and env.bsdf_share > 0:
+        cosine = mi.Bool(proxy.cosine_only) if proxy is not None else mi.Bool(False)
+        p_plain = dr.select(has_lobe & ~cosine, (1.0 - env.bsdf_share) * p_plain + env.bsdf_share * p_bsdf, p_plain)
     dr.eval(channels, mixture, p_bsdf, p_env, p_plain_env, p_product, p_plain, has_lobe)
 
     def per_point(x):

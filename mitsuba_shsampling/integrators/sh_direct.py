@@ -93,10 +93,13 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # ------ Environment: product (or environment-alone) sampling; other emitters: Mitsuba's ------
         # With other emitters and `emitter_selection` `one`, each sample draws one emitter first.
         one_emitter = options.emitter_selection == "one" and env.active and env.has_other_emitters
+        # product_only's lanes draw from its mixture with the BSDF: one more uniform sample.
+        draws_bsdf = carries_all is not False and env.draws_bsdf
         for _ in range(n_e):
             nee = selected_emitter_nee if one_emitter else product_nee
+            u_choice = sampler.next_1d(smooth) if draws_bsdf else None
             L += nee(env, scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe=lobe, use_product=use_product,
-                     smooth=smooth, carries_all=carries_all, frac_e=frac_e, frac_b=frac_b) / n_e
+                     smooth=smooth, carries_all=carries_all, frac_e=frac_e, frac_b=frac_b, u_choice=u_choice) / n_e
         for _ in range(0 if one_emitter else n_e):
             L += emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
 
@@ -121,8 +124,9 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             L += dr.if_stmt(
                 args=(sample_1, sample_2), cond=carries_all,
                 # A strategy sample in a BSDF sample's slot: its share of the lane's samples is frac_b.
-                true_fn=lambda _, u: product_nee(env, scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product,
-                                                 smooth=smooth, carries_all=True, share=frac_b) / n_b,
+                true_fn=lambda u1, u: product_nee(env, scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product,
+                                                  smooth=smooth, carries_all=True, share=frac_b,
+                                                  u_choice=u1 if draws_bsdf else None) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b, env.needs_emitter_sampling) / n_b)
 
