@@ -2,7 +2,8 @@
 
 Shapes that share a BSDF instance share a material. A material is named by its
 BSDF's id when the scene gives one, else by the ids of the shapes that use it
-(``shape3`` for a shape without an id). A BSDF nested in a shape's dictionary
+(``shape3`` for a shape without an id, numbered in an order that is the same in every
+process: :func:`scene_materials`). A BSDF nested in a shape's dictionary
 (``load_dict``) gets its key, ``bsdf``, as id: that names no material. Lanes know their material by the BSDF's
 Dr.Jit registry id (``dr.reinterpret_array(mi.UInt32, si.bsdf())``).
 """
@@ -39,10 +40,22 @@ def registry_id(obj) -> int:
     return int(dr.reinterpret_array(mi.UInt32, pointer)[0])
 
 
+def shape_order_key(shape: mi.Shape) -> tuple:
+    """What orders a scene's shapes the same way in every process: its id, its plugin, its
+    bounding box and its primitive count. Mitsuba loads a scene's objects in parallel, so
+    ``scene.shapes()`` lists them in an order that changes from run to run (a material
+    named by a shape's position was ``shape2`` in one process and ``shape3`` in the next,
+    and a plan or a ``strategy`` entry naming it did not carry over)."""
+    box = shape.bbox()
+    return (shape.id(), shape.class_name(), tuple(box.min), tuple(box.max), int(shape.primitive_count()))
+
+
 def scene_materials(scene: mi.Scene) -> list[Material]:
-    """The scene's materials, in the order of ``scene.shapes()``' first use."""
+    """The scene's materials, in the order of their first use by the shapes sorted by
+    :func:`shape_order_key` (the same in every process); a shape without an id is named
+    by its position in that order."""
     materials: list[Material] = []
-    for number, shape in enumerate(scene.shapes()):
+    for number, shape in enumerate(sorted(scene.shapes(), key=shape_order_key)):
         bsdf = shape.bsdf()
         if bsdf is None:
             continue
