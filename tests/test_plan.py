@@ -213,6 +213,7 @@ def test_a_plan_file_is_written_then_read_and_runs_what_it_says(tmp_path, monkey
     loaded = sh_direct(plan_file=path).plan(scene)
     assert chosen == [] and loaded.mode == "file" and loaded.assignment() == made.assignment()
     assert loaded.lean == made.lean and loaded.cosine_tables == made.cosine_tables
+    assert loaded.bsdf_shares == made.bsdf_shares
 
 
 def test_a_plan_file_of_other_materials_or_options_is_replaced_with_a_warning(tmp_path):
@@ -406,3 +407,22 @@ def test_a_scene_keeps_its_plan_key_whatever_order_its_objects_were_loaded_in():
     other_order, same_key = key_of(("roughplastic", "ggx", "diffuse"))
     assert order != other_order and key == same_key
     assert key_of(("ggx", "diffuse", "roughplastic"), alpha=0.3)[1] != key
+
+
+def test_materials_of_shapes_without_ids_have_the_same_names_whatever_the_loading_order():
+    """A material is named by its shape's position where neither has an id (``shape2``): the
+    position in an order of the shapes' content, not in Mitsuba's (parallel) loading order,
+    so that a plan or a ``strategy`` entry naming it means the same material in every process."""
+    from mitsuba_shsampling.scene_materials import scene_materials
+
+    spheres = {x: f'<shape type="sphere"><point name="center" x="{x}" y="0" z="0"/><float name="radius" '
+                  f'value="0.4"/><bsdf type="{kind}"/></shape>'
+               for x, kind in ((-1.0, "diffuse"), (0.0, "roughconductor"), (1.0, "roughplastic"))}
+
+    def names(order):
+        scene = mi.load_string('<scene version="3.0.0">' + "".join(spheres[x] for x in order) + "</scene>")
+        return {m.name: m.bsdf.class_name() for m in scene_materials(scene)}
+
+    first = names((-1.0, 0.0, 1.0))
+    assert all(name.startswith("shape") for name in first)
+    assert names((1.0, -1.0, 0.0)) == first == names((0.0, 1.0, -1.0))
