@@ -137,6 +137,16 @@ def test_the_coordinate_descent_pays_for_time_only_where_the_variance_drops_enou
     assert error == pytest.approx((3.0 + 1.0) * (1.0 + 0.2))
 
 
+def test_the_descent_starts_a_material_forced_off_the_environment_on_its_own_strategy():
+    """Whatever the materials' order: a forced material listed after the others once made
+    the descent price them with it on the environment, a strategy its row does not have."""
+    variance = {"glossy": {E: 4.0, P: 1.0}, "forced": {P: 2.0}}
+    share = {"glossy": 0.5, "forced": 0.5}
+    extra = {"glossy": {E: 0.0, P: 0.4}, "forced": {P: 0.4}}
+    choice, _ = minimise_error_at_equal_time(variance, 0.0, share, base_time=1.0, extra_time=extra)
+    assert choice == {"glossy": P, "forced": P}
+
+
 def test_a_near_tie_is_settled_by_timing_the_rival_assignments_as_wholes():
     """The per-material times are differences of pilot times; where the model puts two
     assignments within a few per cent, both are timed whole and the measured time decides."""

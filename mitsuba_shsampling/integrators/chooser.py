@@ -52,7 +52,7 @@ import numpy as np
 from .costs import CostModel, cost_model
 from .pilots import (LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate, cosine_pilot,
                      film_variance_factor, frozen_pilots, measure_pass_costs)
-from .quadrature import camera_frames, frame_variances
+from .quadrature import PRODUCT_ONLY_SHARED, camera_frames, frame_variances
 from . import plan_file
 from .strategy import ESTIMATE, MEASURE, Strategy, strategy_named
 
@@ -129,6 +129,9 @@ class StrategyChoice:
     cosine_tables: list = dataclasses.field(default_factory=list)
     """Materials with a cosine lobe whose product is sampled from the cosine tables (the
     others with one walk their SH lobe: :func:`choose_cosine_sampling`)."""
+    bsdf_shares: list = dataclasses.field(default_factory=list)
+    """Materials whose ``product_only`` gives the BSDF its share (``bsdf_defensive_share``:
+    where the quadrature predicts less variance with it, :func:`predict`)."""
     mode: str = ESTIMATE
     """How the plan was made: ``estimate`` (the cost model), ``measure`` (timed pilots in
     the scene), ``file`` (loaded from ``plan_file``) or ``kept`` (made by an earlier process
@@ -144,7 +147,7 @@ class StrategyChoice:
     def as_dict(self) -> dict:
         return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
                 "mode": self.mode, "setup_seconds": self.setup_seconds, "costs": dict(self.costs),
-                "cosine_tables": list(self.cosine_tables),
+                "cosine_tables": list(self.cosine_tables), "bsdf_shares": list(self.bsdf_shares),
                 "pass_time_s": dict(self.pass_time), "confirmation_time_s": dict(self.confirmation_time),
                 "shared_variance": self.shared_variance,
                 "calibration": {s.label: f for s, f in (self.pilots.calibration if self.pilots else {}).items()},
@@ -234,8 +237,9 @@ def minimise_error_at_equal_time(variance: dict, rest: float, share: dict, base_
     possible); ``share[m]``: its share of the film; ``extra_time[m][s]``: extra pass
     time per unit share of material m on strategy s (0 for the environment strategy;
     missing: not possible). Coordinate descent from every material on the environment
-    strategy."""
-    choice = {m: Strategy.ENVIRONMENT for m in variance}
+    strategy (a material that cannot run it, one forced to another: on its first)."""
+    choice = {m: Strategy.ENVIRONMENT if Strategy.ENVIRONMENT in row else next(iter(row))
+              for m, row in variance.items()}
 
     def cost(choice):
         return predicted_error(choice, variance, rest, share, base_time, extra_time)
@@ -322,12 +326,21 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
         variances = choose_cosine_sampling(env, variances, walked, keys)
     materials = list(env.strategies.ids)
     allowed = {key: [forced[key]] if key in forced else env.allowed(key) for key in materials}
-    variance, share = {}, {}
+    variance, share, shared = {}, {}, set()
     for key in materials:
         rows = variances[keys == key]
         share[key] = len(rows) / total
         strategies = set(allowed[key]) | set(env.allowed(key))
         variance[key] = {s: (float(np.sum(rows[:, s])) / total if len(rows) else 0.0) for s in strategies}
+        # product_only gives the BSDF its share where that is predicted to lower the variance
+        # (a lobe proxy that misses part of the BSDF), not where the product alone is close to
+        # exact: the share's floor, b / (1 - b) of the squared mean, then dominates.
+        with_share = float(np.sum(rows[:, PRODUCT_ONLY_SHARED])) / total if len(rows) else 0.0
+        if Strategy.PRODUCT_ONLY in strategies and env.bsdf_share > 0 and with_share < variance[key][
+                Strategy.PRODUCT_ONLY]:
+            variance[key][Strategy.PRODUCT_ONLY] = with_share
+            shared.add(key)
+    env.share_bsdf(shared)
     rest_rows = variances[~np.isin(keys, materials)]
     rest = float(np.sum(rest_rows[:, Strategy.ENVIRONMENT])) / total if len(rest_rows) else 0.0
     return Predictions(materials, allowed, variance, share, rest)
@@ -403,7 +416,8 @@ def pilot_shares(env, p: Predictions) -> dict:
 
 def pass_times(model: CostModel, env, materials: list) -> tuple[float, float, dict]:
     """(lean pass, pass with product code, extra[id][strategy] per unit film share), in lean passes."""
-    extra = {k: {s: model.extra(s, env.samples_from_cosine_table(k)) for s in Strategy} for k in materials}
+    extra = {k: {s: model.extra(s, env.samples_from_cosine_table(k), env.bsdf_shared.of(k)) for s in Strategy}
+             for k in materials}
     return 1.0, 1.0 + model.product_code, extra
 
 
@@ -477,7 +491,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         lean=lean,
         seconds=time.perf_counter() - start, shared_variance=shared, pilot_variance=fit, pilots=pilots,
         cosine_tables=sorted(env.material_name(k) for k in env.lobes.tabled_ids) if env.cosine_tables else [],
-        mode=MEASURE if timed else ESTIMATE, costs=costs.as_dict() if costs is not None else {})
+        bsdf_shares=shared_names(env), mode=MEASURE if timed else ESTIMATE, costs=costs.as_dict() if costs is not None else {})
 
 
 def confirmation_timer(env, lean_choice: dict, render_pass: Callable, spp: int, confirmed: dict) -> Callable:
@@ -504,6 +518,14 @@ def materials_report(env, p: Predictions, choice: dict, lean_choice: dict, varia
     return report
 
 
+def shared_names(env) -> list:
+    """The materials whose ``product_only`` gives the BSDF its share, by name (none where the
+    option is 0)."""
+    if env.bsdf_share <= 0:
+        return []
+    return sorted(env.material_name(k) for k in env.strategies.ids if env.bsdf_shared.of(k))
+
+
 def stored_choice(env, stored: dict, mode: str = "file") -> StrategyChoice:
     """Apply a plan read from a file (:func:`.plan_file.load`) to ``env``; its
     :class:`StrategyChoice` (``mode`` ``file``, or ``kept`` for a plan from the cache
@@ -514,6 +536,7 @@ def stored_choice(env, stored: dict, mode: str = "file") -> StrategyChoice:
     if env.lobes is not None and env.cosine_tables:
         env.lobes.sample_from_tables({key for key in env.lobes.cosine_ids
                                       if env.material_name(key) in set(stored["cosine_tables"])})
+    env.share_bsdf({key for key in env.strategies.ids if env.material_name(key) in set(stored["bsdf_shares"])})
     apply_choice(env, choice, lean)
     plan = stored["plan"]
     shown = {m["name"]: m for m in plan.get("materials", [])}
@@ -528,7 +551,8 @@ def stored_choice(env, stored: dict, mode: str = "file") -> StrategyChoice:
     return StrategyChoice(materials=materials, pass_time=plan.get("pass_time_s", {}),
                           predicted_gain=plan.get("predicted_gain", 1.0), lean=lean, seconds=0.0,
                           shared_variance=plan.get("shared_variance", 0.0), pilot_variance=pilot_variance,
-                          cosine_tables=sorted(stored["cosine_tables"]), mode=mode, costs=plan.get("costs", {}))
+                          cosine_tables=sorted(stored["cosine_tables"]), bsdf_shares=shared_names(env), mode=mode,
+                          costs=plan.get("costs", {}))
 
 
 # ----------------------------------------------------------------- the integrators' planner
