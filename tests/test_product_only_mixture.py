@@ -1,5 +1,7 @@
-"""``product_only`` draws from (1 - b) product + b BSDF: its samples follow that pdf, its
-renders are unbiased, and its brightest pixel stays near ``direct``'s.
+"""``product_only`` gives the BSDF a share b of its samples (its BSDF samples' slots draw
+from the BSDF or the product, and every sample gets the balance weight over the slots):
+those slots' samples follow their pdf, the renders are unbiased, and the brightest pixel
+stays near ``direct``'s.
 
 Without a BSDF sample in the lane, the product alone covered a lit direction only by
 the lobe proxy and the environment's defensive share; where the proxy misses part of
@@ -28,6 +30,7 @@ from mitsuba_shsampling.integrators.strategy import Strategy  # noqa: E402
 from mitsuba_shsampling.scenes import builtin_scenes, load_scene  # noqa: E402
 
 from conftest import ENVMAPS_DIR  # noqa: E402
+from test_plan import forget_shared  # noqa: E402
 
 register()
 
@@ -57,9 +60,17 @@ def test_only_sh_walked_lobes_on_product_only_trace_the_mixture(coated_sphere):
     assert env.draws_bsdf
 
 
-def test_chi2_the_mixtures_samples_follow_its_pdf(coated_sphere):
+def test_a_bsdf_samples_slot_draws_from_the_bsdf_so_that_it_has_its_share_of_the_lanes_samples(coated_sphere):
+    _, env, _, _ = coated_sphere
+    assert env.carried_slots(0.5, 0.5).bsdf_in_slot == pytest.approx(0.2)
+    assert env.carried_slots(0.75, 0.25).bsdf_in_slot == pytest.approx(0.4)
+    assert env.carried_slots(0.95, 0.05).bsdf_in_slot == 1.0  # all it can
+
+
+def test_chi2_a_bsdf_samples_slot_follows_its_pdf(coated_sphere):
+    """The slot draws from (1 - t) product + t BSDF."""
     _, env, si, bsdf = coated_sphere
-    pyramid, share, ctx = env.pyramid, env.bsdf_share, mi.BSDFContext()
+    pyramid, share, ctx = env.pyramid, env.carried_slots(0.5, 0.5).bsdf_in_slot, mi.BSDFContext()
 
     def point(width: int):
         """The shading point in ``width`` lanes, with its lobe."""
@@ -71,7 +82,7 @@ def test_chi2_the_mixtures_samples_follow_its_pdf(coated_sphere):
 
     def sample(u):
         si_n, bsdf_n, lobe, use_product = point(dr.width(u))
-        draw = BSDFDraw(si_n, bsdf_n, ctx, u.x)
+        draw = BSDFDraw(si_n, bsdf_n, ctx, u.x, share)
         d, pdf = env.sample_environment(lobe, mi.Point2f(u.y, u.z), use_product, True, draw)
         # A failed BSDF draw (below the horizon) returns pdf 0: the mixture's density
         # then integrates to less than 1, as the estimator counts it.
@@ -119,3 +130,30 @@ def test_the_coated_sphere_under_a_city_map_has_no_firefly_on_product_only():
     }.items()}
     assert brightest["product_only"] <= 3.0 * brightest["direct"], brightest
     assert brightest["without the share"] > 3.0 * brightest["direct"], brightest
+
+
+def test_the_plan_gives_the_share_where_it_lowers_the_predicted_variance_and_a_plan_file_keeps_it(tmp_path):
+    """The share costs a variance floor of about b / (1 - b) of the squared mean where the
+    product alone is close to exact (a copper ball under a studio's softboxes: 1.8x the
+    variance); the plan weighs it per material with the quadrature, which samples the
+    BSDF's peak too. A forced ``product_only`` (no plan) shares everywhere."""
+    scene = load_scene(builtin_scenes()["sphere_roughplastic"], envmap=str(ENVMAPS_DIR / "potsdamer_platz_1k.hdr"),
+                       res=64, spp=4)
+    plan_file = str(tmp_path / "plan.json")
+    planned = mi.load_dict({"type": "sh_direct", "plan_file": plan_file})
+    choice = planned.plan(scene)
+    by_name = {m.name: m for m in choice.materials}
+    assert choice.bsdf_shares == ["material"]  # the coated sphere; the diffuse ground's lobe is exact
+    env = planned.scenes.get(scene)
+    keys = {env.material_name(k): k for k in env.strategies.ids}
+    assert env.bsdf_shared.of(keys["material"]) and not env.bsdf_shared.of(keys["ground"])
+    assert by_name["material"].variance[Strategy.PRODUCT_ONLY] > 0
+
+    forget_shared()  # a new process, as far as the plans are concerned
+    loaded = mi.load_dict({"type": "sh_direct", "plan_file": plan_file})
+    assert loaded.plan(scene).mode == "file"
+    env = loaded.scenes.get(scene)
+    assert env.bsdf_shared.of(keys["material"]) and not env.bsdf_shared.of(keys["ground"])
+
+    forced = mi.load_dict({"type": "sh_direct", "strategy": "product_only"}).scenes.get(scene)
+    assert all(forced.bsdf_shared.of(k) for k in forced.strategies.ids)

@@ -40,7 +40,7 @@ from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from ..warp.sky_mixture import SkyMixture
 from .options import DEFAULT_BSDF_DEFENSIVE_SHARE, OptionError, ProductOptions
-from .strategy import AUTO, Strategy, StrategyTable, strategy_named
+from .strategy import AUTO, MaterialFlags, Strategy, StrategyTable, strategy_named
 
 
 def emitter_id(emitter: mi.Emitter | None) -> mi.UInt32 | None:
@@ -220,11 +220,8 @@ class ProductEnvironment(EnvironmentState):
         self.has_dirac_materials = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Delta)
                                        for m in self._materials.values())
         self.carry_all = carry_all
-        #: The BSDF's share in ``product_only``'s mixture (``bsdf_defensive_share``, a parameter
-        #: of ``sh_direct``, the plugin whose lanes may carry every sample; options without it
-        #: take its default).
-        self.bsdf_share = (getattr(options, "bsdf_defensive_share", DEFAULT_BSDF_DEFENSIVE_SHARE)
-                           if carry_all else 0.0)
+        #: ``product_only``'s BSDF share (``sh_direct``'s ``bsdf_defensive_share``, else its default).
+        self.bsdf_share = getattr(options, "bsdf_defensive_share", DEFAULT_BSDF_DEFENSIVE_SHARE) if carry_all else 0.0
         #: Trace the cosine tables' and the SH walk's code whatever the materials run (the
         #: chooser's pilot passes: :func:`~.chooser.measure_pass_costs`).
         self.pilot_walks = False
@@ -270,6 +267,8 @@ class ProductEnvironment(EnvironmentState):
         first = forced or Strategy.PRODUCT
         self.strategies = StrategyTable({key: self._runnable(key, first) for key, m in self._materials.items()
                                          if mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth)})
+        #: Materials whose ``product_only`` shares (:meth:`mixes_bsdf`): all until a plan weighs it.
+        self.bsdf_shared = MaterialFlags(self.strategies.ids, True)
         self.forced = self._resolve_named(named)
         if forced is not None:  # no plan to make: the named materials get theirs now
             self.strategies.assign(self.forced)
@@ -416,7 +415,8 @@ class ProductEnvironment(EnvironmentState):
                                                          for key in on_product)
         coeffs, proxy, use_product = self.lobes.coefficients_and_proxy(si, self.pyramid.grid_from_world,
                                                                        wants_product, tables, sh_lobes)
-        return LaneLobe(coeffs, proxy), use_product & wants_product
+        shared = self.bsdf_shared.lane(si, wants_product) if self.draws_bsdf else None
+        return LaneLobe(coeffs, proxy, shared), use_product & wants_product
 
     def carries_all(self, si, bsdf, smooth: mi.Bool) -> mi.Bool:
         """Per lane: the lane's material runs a strategy that carries every sample
@@ -462,22 +462,27 @@ class ProductEnvironment(EnvironmentState):
         elsewhere, from the uncompensated map in ``carries_all`` lanes. Symbolic
         branches: a SIMD packet runs only the walks its lanes need.
 
-        Given ``bsdf_draw`` (:class:`BSDFDraw`), the lanes of ``product_only``'s mixture
-        (:meth:`mixes_bsdf`) draw from (1 - b) product + b BSDF (b: :attr:`bsdf_share`);
-        there the pdf returned is the *product's* at the direction (0 where the BSDF's
-        draw failed), which :meth:`carried_weight` turns into the mixture's."""
-        if self.warp is None:
-            return self.sample_alone(u, carries_all)
+        Given ``bsdf_draw`` (:class:`BSDFDraw`: a BSDF sample's slot), the lanes of
+        ``product_only``'s mixture (:meth:`mixes_bsdf`) draw from the BSDF with
+        probability ``bsdf_draw.share``, from the product otherwise; the pdf returned is
+        then the *product's* at the direction (0 where the BSDF's draw failed), which
+        :meth:`carried_weight` turns into the sample's balance weight."""
         mixes = self.mixes_bsdf(lobe, use_product, carries_all) if bsdf_draw is not None else False
-        chose_bsdf = mixes & (bsdf_draw.u_choice < self.bsdf_share) if mixes is not False else mi.Bool(False)
+        if self.warp is None or mixes is False:
+            return (self.sample_alone(u, carries_all) if self.warp is None else
+                    dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
+                               true_fn=lambda c, v: self.sample_product(c, v, carries_all),
+                               false_fn=lambda c, v: self.sample_alone(v, carries_all)))
+        draw = bsdf_draw
+        chose_bsdf = mixes & (draw.u_choice < draw.share)
+        # Three ways, each walk only in the packets whose lanes need it.
         d, pdf = dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product) & ~chose_bsdf,
                             true_fn=lambda c, v: self.sample_product(c, v, carries_all),
-                            false_fn=lambda c, v: self.sample_alone(v, carries_all))
-        if mixes is False:
-            return d, pdf
-        draw = bsdf_draw
+                            false_fn=lambda c, v: dr.if_stmt(
+                                args=(v,), cond=~chose_bsdf, true_fn=lambda w: self.sample_alone(w, carries_all),
+                                false_fn=lambda w: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0))))
         # The BSDF's draw reuses the 2D sample and the choice rescaled (both uniform there).
-        bs, _ = draw.bsdf.sample(draw.ctx, draw.si, draw.u_choice / self.bsdf_share, u, chose_bsdf)
+        bs, _ = draw.bsdf.sample(draw.ctx, draw.si, draw.u_choice / draw.share, u, chose_bsdf)
         drew = chose_bsdf & (bs.pdf > 0)
         d_bsdf = draw.si.to_world(bs.wo)
         # The product's pdf of the BSDF's direction: one walk, in the packets that drew one.
@@ -492,31 +497,51 @@ class ProductEnvironment(EnvironmentState):
         such a lane. A lobe read from the cosine tables is the BSDF's exact shape (a
         clamped cosine about the normal), so its product bounds the samples' values by
         itself there."""
-        if not self.draws_bsdf or carries_all is False:
+        if not self.draws_bsdf or carries_all is False or lobe.bsdf_shared is None:
             return False
         cosine = lobe.proxy.cosine_only if lobe.proxy is not None else False
-        return mi.Bool(use_product) & carries_all & ~mi.Bool(cosine)
+        return mi.Bool(use_product) & carries_all & ~mi.Bool(cosine) & lobe.bsdf_shared
 
     @property
     def draws_bsdf(self) -> bool:
         """``product_only``'s mixture has a BSDF share and some material runs it with an SH
-        lobe (or the chooser's pilots trace every walk): only then is its code traced."""
+        lobe and the share (or the chooser's pilots trace every walk): only then is its code
+        traced."""
         if self.bsdf_share <= 0 or self.warp_plain is None or self.strategies is None:
             return False
         return self.pilot_walks or any(self.strategies.of(key) == Strategy.PRODUCT_ONLY
-                                       and not self.samples_from_cosine_table(key)
+                                       and self.bsdf_shared.of(key) and not self.samples_from_cosine_table(key)
                                        for key in self.strategies.ids)
 
-    def carried_weight(self, lobe, product_pdf, bsdf_pdf, use_product, carries_all):
-        """Per lane, the factor that makes a ``carries_all`` sample's value (BSDF x radiance
-        / ``product_pdf``) that of ``product_only``'s mixture (:meth:`sample_environment`):
-        ``product_pdf`` / ((1 - b) ``product_pdf`` + b ``bsdf_pdf``) where the lane
-        :meth:`mixes_bsdf`, 1 elsewhere."""
+    def share_bsdf(self, keys) -> None:
+        """Give the BSDF its share in ``product_only`` on the materials ``keys`` (registry
+        ids) and on no other."""
+        self.bsdf_shared.set({key: key in set(keys) for key in self.strategies.ids})
+
+    def carried_slots(self, frac_e: float, frac_b: float, selection=1.0) -> CarriedSlots:
+        """How a lane that carries every sample draws them (:class:`CarriedSlots`), with
+        sample-count shares ``frac_e``, ``frac_b`` and an emitter sample that draws the
+        environment with probability ``selection``: the BSDF samples' slots draw from the
+        BSDF with the probability that gives it :attr:`bsdf_share` of the lane's samples
+        (all of them where that is more than their share)."""
+        return CarriedSlots(frac_e, frac_b, selection, min(1.0, self.bsdf_share / frac_b) if frac_b > 0 else 0.0)
+
+    def carried_weight(self, lobe, slot_pdf, product_pdf, bsdf_pdf, use_product, carries_all, slots):
+        """Per lane, the factor that makes a ``carries_all`` sample of ``slot_pdf`` (its
+        slot's density of the direction; the product's there is ``product_pdf``, the
+        BSDF's ``bsdf_pdf``) the balance heuristic's over the lane's ``slots``
+        (:class:`CarriedSlots`): ``slot_pdf`` / q, q = ``frac_e`` x ``selection`` x
+        ``product_pdf`` + ``frac_b`` x ((1 - t) ``product_pdf`` + t ``bsdf_pdf``), where
+        the lane :meth:`mixes_bsdf`; 1 (equal weights) elsewhere. Every slot's sample is
+        then worth BSDF x radiance / (N q) whichever slot drew it, at most the BSDF
+        sample's weight x radiance / (N b)."""
         mixes = self.mixes_bsdf(lobe, use_product, carries_all)
         if mixes is False:
             return 1.0
-        mixture = (1.0 - self.bsdf_share) * product_pdf + self.bsdf_share * bsdf_pdf
-        return dr.select(mixes & (mixture > 0), product_pdf / mixture, 1.0)
+        t = slots.bsdf_in_slot
+        q = (slots.frac_e * slots.selection * product_pdf
+             + slots.frac_b * ((1.0 - t) * product_pdf + t * bsdf_pdf))
+        return dr.select(mixes & (q > 0), slot_pdf / q, 1.0)
 
     def pdf(self, lobe, use_product, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
         """Pdf of world direction ``d`` under the lane's environment strategy: the
@@ -539,13 +564,39 @@ class ProductEnvironment(EnvironmentState):
 
 
 class BSDFDraw(NamedTuple):
-    """What ``product_only``'s BSDF share draws with (:meth:`ProductEnvironment.sample_environment`)."""
+    """What a BSDF sample's slot of ``product_only`` draws with
+    (:meth:`ProductEnvironment.sample_environment`)."""
 
     si: mi.SurfaceInteraction3f
     bsdf: mi.BSDFPtr
     ctx: mi.BSDFContext
     u_choice: mi.Float
-    """A uniform sample: below the share, the BSDF draws (and this, rescaled, picks its component)."""
+    """A uniform sample: below ``share`` the BSDF draws (and this, rescaled, picks its component)."""
+    share: float
+    """The probability that the BSDF draws (:attr:`CarriedSlots.bsdf_in_slot`)."""
+
+
+class CarriedSlots(NamedTuple):
+    """How a lane of ``product_only`` draws its samples, for their balance weights
+    (:meth:`ProductEnvironment.carried_weight`).
+
+    Its emitter samples' slots draw from the product (the environment with probability
+    ``selection``), its BSDF samples' slots from the BSDF with probability
+    ``bsdf_in_slot`` and from the product otherwise. Only the BSDF slots draw from the
+    BSDF: the same share drawn in every slot put nearly twice as many SIMD packets through
+    the product's pdf walk (``product_only`` cost 0.77-0.83 lean passes per unit film
+    share against 0.62-0.75 this way and 0.35-0.62 without the share: ``calibrate``,
+    docs/MEASUREMENTS.md, "A BSDF share in product_only")."""
+
+    frac_e: float
+    """The emitter samples' share of the lane's samples."""
+    frac_b: float
+    """The BSDF samples' share."""
+    selection: float | mi.Float
+    """The probability that an emitter sample draws the environment (1 unless one emitter
+    is drawn per sample)."""
+    bsdf_in_slot: float
+    """The probability that a BSDF sample's slot draws from the BSDF."""
 
 
 class LaneLobe(NamedTuple):
@@ -555,6 +606,9 @@ class LaneLobe(NamedTuple):
     """SH coefficients (grid frame), for the SH levels."""
     proxy: ProxyLobe | None
     """The same proxy in closed form, for the levels below them (see ``proxy_depth``)."""
+    bsdf_shared: mi.Bool | None = None
+    """The lane's material gives the BSDF its share in ``product_only``
+    (:meth:`ProductEnvironment.mixes_bsdf`); None where no lane can."""
 
 
 class FrozenBeforePlanError(RuntimeError):

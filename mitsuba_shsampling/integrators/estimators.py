@@ -232,7 +232,7 @@ def mitsuba_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, samp
 
 def product_nee(env, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carries_all,
                 frac_e: float = 0.5, frac_b: float = 0.5, share: float | None = None,
-                u_choice=None, differentiable: bool = False):
+                u_choice=None, slots=None, differentiable: bool = False):
     """One sample of the environment (BSDF value x radiance / pdf) in the ``smooth``
     lanes, with the lane's strategy in ``env`` (a :class:`~.environment.ProductEnvironment`:
     its ``sample_environment``).
@@ -243,15 +243,18 @@ def product_nee(env, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carr
     is power-heuristic weighted against BSDF sampling with the strategies'
     sample-count fractions ``frac_e``, ``frac_b``. ``carries_all`` may be the Python
     value True (inside a branch that only such lanes enter): then only the
-    uncompensated walks are traced. ``u_choice``: a further uniform sample, with which
-    ``product_only``'s lanes draw from its mixture with the BSDF (without it, from
-    the product alone). ``differentiable``: see :func:`environment_sample`."""
+    uncompensated walks are traced. ``slots``: how such lanes draw their samples
+    (:class:`~.environment.CarriedSlots`), for the balance weights of ``product_only``'s
+    lanes; ``u_choice``: a further uniform sample, given in a BSDF sample's slot, with
+    which those lanes draw from the BSDF or the product (without it, from the product).
+    ``differentiable``: see :func:`environment_sample`."""
     if not env.active:
         return mi.Spectrum(0.0)
     share = frac_e if share is None else share
     smooth = mi.Bool(smooth)
     # (No lane carries all: the state's own strategies, an oracle's too, and nothing of the mixture.)
-    extra = () if carries_all is False or u_choice is None else (BSDFDraw(si, bsdf, ctx, u_choice),)
+    extra = () if carries_all is False or u_choice is None else (BSDFDraw(si, bsdf, ctx, u_choice,
+                                                                          slots.bsdf_in_slot),)
     # Packets without a smooth lane (sky, delta BSDFs) skip the walks.
     d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
                           true_fn=lambda c, v: env.sample_environment(c, v, use_product, carries_all, *extra),
@@ -260,7 +263,7 @@ def product_nee(env, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carr
     def weight(bsdf_pdf):
         if carries_all is False:
             return mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b)
-        carried = share * env.carried_weight(lobe, pdf_e, bsdf_pdf, use_product, carries_all)
+        carried = share * env.carried_weight(lobe, pdf_e, pdf_e, bsdf_pdf, use_product, carries_all, slots)
         if carries_all is True:  # a lane known to carry all: no MIS weight to trace
             return carried
         return dr.select(carries_all, carried, mis_weight(pdf_e * frac_e, bsdf_pdf * frac_b))
@@ -278,7 +281,7 @@ def emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carr
 
 
 def selected_emitter_nee(env, scene, u: mi.Point2f, si, bsdf, ctx, *, lobe, use_product, smooth, carries_all,
-                         frac_e: float, frac_b: float, u_choice=None) -> mi.Spectrum:
+                         frac_e: float, frac_b: float, slots=None) -> mi.Spectrum:
     """One sample of one emitter in the ``smooth`` lanes: the emitter drawn as Mitsuba's
     scene draws it (``Scene.sample_emitter``: uniformly, or by the emitters'
     ``sampling_weight``), then the lane's environment strategy in ``env`` where that is
@@ -290,16 +293,16 @@ def selected_emitter_nee(env, scene, u: mi.Point2f, si, bsdf, ctx, *, lobe, use_
     pdf; the BSDF sample's weight uses the same (:meth:`~.environment.ProductEnvironment.hit_pdf`
     with ``selection``). Weights as in :func:`product_nee` (``share`` in ``carries_all``
     lanes, which run no BSDF sample, so 1 for other emitters there) and
-    :func:`mitsuba_emitter_sample` (1 for Dirac emitters); ``u_choice`` as in :func:`product_nee`."""
+    :func:`mitsuba_emitter_sample` (1 for Dirac emitters); ``slots`` as in :func:`product_nee`
+    (this is an emitter sample's slot: it draws no BSDF direction)."""
     smooth = mi.Bool(smooth)
     index, _, u_x = scene.sample_emitter(u.x, smooth)
     to_env = smooth & (index == env.emitter_index)
     to_other = smooth & ~to_env
-    draw = None if u_choice is None else BSDFDraw(si, bsdf, ctx, u_choice)
     # The reprojected component keeps the environment strategy's 2D sample stratified.
     d_env, pdf_direction = dr.if_stmt(
         args=(lobe, mi.Point2f(u_x, u.y)), cond=to_env,
-        true_fn=lambda c, v: env.sample_environment(c, v, use_product, carries_all, draw),
+        true_fn=lambda c, v: env.sample_environment(c, v, use_product, carries_all),
         false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
     pdf_env = pdf_direction * env.selection
     # The same sample.x draws the same emitter inside Mitsuba's call; visibility is tested below.
@@ -316,8 +319,9 @@ def selected_emitter_nee(env, scene, u: mi.Point2f, si, bsdf, ctx, *, lobe, use_
     act &= dr.any(bsdf_val != 0.0)
     act &= ~scene.ray_test(ray, act)
     radiance = scene.environment().eval(environment_ray_target(d, si.wavelengths), act & to_env)
-    weight_env = dr.select(carries_all, frac_e * env.carried_weight(lobe, pdf_direction, bsdf_pdf, use_product,
-                                                                       carries_all),
+    carried = 1.0 if carries_all is False else env.carried_weight(lobe, pdf_env, pdf_direction, bsdf_pdf,
+                                                                   use_product, carries_all, slots)
+    weight_env = dr.select(carries_all, frac_e * carried,
                            mis_weight(pdf_env * frac_e, bsdf_pdf * frac_b))
     weight_other = dr.select(ds.delta | carries_all, 1.0, mis_weight(ds.pdf * frac_e, bsdf_pdf * frac_b))
     value = dr.select(to_env, radiance * (weight_env / pdf_env), em_weight * weight_other)

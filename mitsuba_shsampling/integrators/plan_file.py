@@ -1,7 +1,8 @@
 """Plans kept in files: ``plan_file``, and plans kept in the cache folder like FFTW's wisdom.
 
 A plan file is JSON: the strategy of each material (by name), whether the kernel
-is lean, which cosine lobes read their tables, the options it was made with (every
+is lean, which cosine lobes read their tables, which materials' ``product_only`` gives
+the BSDF its share, the options it was made with (every
 option but the plan's own, :attr:`~.options.ProductOptions.plan_key`) and the whole
 plan as the reports show it. It is loaded only for a scene with the same materials
 and the same options; otherwise a new plan is made and the file rewritten (with a
@@ -44,7 +45,8 @@ def wisdom_path(scene: mi.Scene, sensor: mi.Sensor, options_key: str) -> str:
 def save(path: str, choice, options_key: str) -> None:
     """Write ``choice`` (:class:`~.chooser.StrategyChoice`) to ``path``."""
     record = {"format": FORMAT, "options": options_key, "strategies": choice.assignment(), "lean": choice.lean,
-              "cosine_tables": list(choice.cosine_tables), "plan": choice.as_dict()}
+              "cosine_tables": list(choice.cosine_tables), "bsdf_shares": list(choice.bsdf_shares),
+              "plan": choice.as_dict()}
     try:
         folder = os.path.dirname(os.path.abspath(path))
         os.makedirs(folder, exist_ok=True)
@@ -68,6 +70,7 @@ def load(path: str, env, options_key: str) -> dict | None:
         stored = {name: strategy_named(label) for name, label in record["strategies"].items()}
         fits = record.get("format") == FORMAT and record["options"] == options_key
         lean, cosine_tables = bool(record["lean"]), list(record.get("cosine_tables", []))
+        bsdf_shares = list(record.get("bsdf_shares", []))
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
         warnings.warn(f"{env.plugin}: the plan file {path} cannot be read ({err}); making a new plan", RuntimeWarning)
         return None
@@ -80,4 +83,4 @@ def load(path: str, env, options_key: str) -> dict | None:
         warnings.warn(f"{env.plugin}: the plan file {path} does not fit ({why}); making a new plan", RuntimeWarning)
         return None
     return {"strategies": {by_name[name]: strategy for name, strategy in stored.items()}, "lean": lean,
-            "cosine_tables": cosine_tables, "plan": record.get("plan", {})}
+            "cosine_tables": cosine_tables, "bsdf_shares": bsdf_shares, "plan": record.get("plan", {})}

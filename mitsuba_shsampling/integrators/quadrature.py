@@ -29,6 +29,11 @@ FRAMES = 4096
 DIRECTIONS = 64
 """Quadrature directions per shading point."""
 
+PRODUCT_ONLY_SHARED = len(Strategy)
+"""Column of :func:`frame_variances` after the strategies': ``product_only`` with the BSDF's
+share (``bsdf_defensive_share``; the plan gives it where it predicts less variance,
+:func:`~.chooser.predict`)."""
+
 
 def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
     """The camera's first hits at a stratified grid of film positions (at most
@@ -56,7 +61,7 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     The product of a cosine lobe is its table's where the lobes say so
     (:meth:`~..lobes.scene_lobes.SceneLobes.sample_from_tables`), else its SH walk's.
 
-    Returns an array (points, 4), indexed by :class:`Strategy`: the variance
+    Returns an array (points, 5), indexed by :class:`Strategy` and :data:`PRODUCT_ONLY_SHARED`: the variance
     (averaged over the colour channels, as the report's MSE is) of one lane's
     environment estimate with ``n_e`` strategy samples and ``n_b`` BSDF samples
     (power heuristic on sample-count fractions), or with ``n_e + n_b`` strategy
@@ -129,12 +134,14 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
     p_plain = dr.select(has_lobe, env.warp_plain.pdf(coeffs, d, proxy), 0.0) if plain else mi.Float(0.0)
     mixture = 0.2 * (p_bsdf + p_env + p_plain_env + dr.select(has_lobe, p_product, p_env)
                      + dr.select(has_lobe & plain, p_plain, p_env))
-    # product_only draws from its mixture with the BSDF where its lobe is walked in SH
-    # (ProductEnvironment.sample_environment): the strategy's pdf is that mixture's.
+    # With the BSDF's share, product_only draws from its mixture with the BSDF where its lobe
+    # is walked in SH (ProductEnvironment.sample_environment): the pdf of its lane's samples
+    # is that mixture's (the balance over its slots).
+    p_shared = p_plain
     if plain and env.bsdf_share > 0:
         cosine = mi.Bool(proxy.cosine_only) if proxy is not None else mi.Bool(False)
-        p_plain = dr.select(has_lobe & ~cosine, (1.0 - env.bsdf_share) * p_plain + env.bsdf_share * p_bsdf, p_plain)
-    dr.eval(channels, mixture, p_bsdf, p_env, p_plain_env, p_product, p_plain, has_lobe)
+        p_shared = dr.select(has_lobe & ~cosine, (1.0 - env.bsdf_share) * p_plain + env.bsdf_share * p_bsdf, p_plain)
+    dr.eval(channels, mixture, p_bsdf, p_env, p_plain_env, p_product, p_plain, p_shared, has_lobe)
 
     def per_point(x):
         return np.broadcast_to(np.asarray(x.numpy(), dtype=np.float64), (lanes,)).reshape(points, directions)
@@ -142,6 +149,7 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
     return {"channels": [per_point(f) for f in channels], "q": per_point(mixture), "bsdf": per_point(p_bsdf),
             "environment": per_point(p_env), "environment_only": per_point(p_plain_env),
             "product": per_point(p_product), "product_only": per_point(p_plain),
+            "product_only_shared": per_point(p_shared),
             "lobed": per_point(mi.Float(has_lobe))[:, 0] > 0}
 
 
@@ -178,7 +186,7 @@ def strategy_variances(samples: dict, n_e: int, n_b: int, product: bool, plain: 
         def alone_variance(pdf):
             return np.mean([one_sample_variance(f, pdf) for f in channels], axis=0) / (n_e + n_b)
 
-        result = np.full((len(q), len(Strategy)), np.nan)
+        result = np.full((len(q), len(Strategy) + 1), np.nan)
         result[:, Strategy.ENVIRONMENT] = mis_variance(samples["environment"])
         result[:, Strategy.ENVIRONMENT_ONLY] = alone_variance(samples["environment_only"])
         # A lane of a product material without a lobe (its back side, where the BSDF is
@@ -189,4 +197,6 @@ def strategy_variances(samples: dict, n_e: int, n_b: int, product: bool, plain: 
         if plain:
             result[:, Strategy.PRODUCT_ONLY] = np.where(lobed, alone_variance(samples["product_only"]),
                                                         result[:, Strategy.ENVIRONMENT_ONLY])
+            result[:, PRODUCT_ONLY_SHARED] = np.where(lobed, alone_variance(samples["product_only_shared"]),
+                                                      result[:, Strategy.ENVIRONMENT_ONLY])
     return result

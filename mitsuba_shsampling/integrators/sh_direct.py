@@ -93,13 +93,14 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # ------ Environment: product (or environment-alone) sampling; other emitters: Mitsuba's ------
         # With other emitters and `emitter_selection` `one`, each sample draws one emitter first.
         one_emitter = options.emitter_selection == "one" and env.active and env.has_other_emitters
-        # product_only's lanes draw from its mixture with the BSDF: one more uniform sample.
+        # In product_only's lanes the BSDF samples' slots draw from the BSDF or the product
+        # and every sample gets the balance weight over the slots (environment.CarriedSlots).
         draws_bsdf = carries_all is not False and env.draws_bsdf
+        slots = env.carried_slots(frac_e, frac_b, env.selection if one_emitter else 1.0) if env.active else None
         for _ in range(n_e):
             nee = selected_emitter_nee if one_emitter else product_nee
-            u_choice = sampler.next_1d(smooth) if draws_bsdf else None
             L += nee(env, scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe=lobe, use_product=use_product,
-                     smooth=smooth, carries_all=carries_all, frac_e=frac_e, frac_b=frac_b, u_choice=u_choice) / n_e
+                     smooth=smooth, carries_all=carries_all, frac_e=frac_e, frac_b=frac_b, slots=slots) / n_e
         for _ in range(0 if one_emitter else n_e):
             L += emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
 
@@ -126,7 +127,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 # A strategy sample in a BSDF sample's slot: its share of the lane's samples is frac_b.
                 true_fn=lambda u1, u: product_nee(env, scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product,
                                                   smooth=smooth, carries_all=True, share=frac_b,
-                                                  u_choice=u1 if draws_bsdf else None) / n_b,
+                                                  u_choice=u1 if draws_bsdf else None, slots=slots) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b, env.needs_emitter_sampling) / n_b)
 

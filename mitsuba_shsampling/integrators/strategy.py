@@ -146,3 +146,32 @@ class StrategyTable:
         bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
         active = mi.Bool(active) & (bsdf_id < self._device_size)
         return dr.gather(mi.UInt32, self._device, bsdf_id, active)
+
+
+class MaterialFlags:
+    """A yes or no per material (BSDF registry id -> bool), as device data gathered per
+    lane like :class:`StrategyTable`'s codes: setting it reuses the compiled kernel.
+    Ids outside the table read False."""
+
+    def __init__(self, ids, value: bool):
+        self.ids = list(ids)
+        self._size = max(self.ids, default=0) + 1
+        self._flags = np.zeros(max(self._size, 2), dtype=np.uint32)  # (at least two: never a literal)
+        self.set({key: value for key in self.ids})
+
+    def set(self, flags: dict) -> None:
+        """Set the flag of the materials in ``flags`` (registry id -> bool)."""
+        for key, value in flags.items():
+            self._flags[key] = int(bool(value))
+        self._device = device_array(mi.UInt32, self._flags)
+        dr.make_opaque(self._device)
+        self._device_size = dr.opaque(mi.UInt32, self._size)
+
+    def of(self, key: int) -> bool:
+        return key < self._size and bool(self._flags[key])
+
+    def lane(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Bool:
+        """Per lane: the flag of the BSDF at ``si`` (False where not ``active``)."""
+        bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
+        active = mi.Bool(active) & (bsdf_id < self._device_size)
+        return dr.gather(mi.UInt32, self._device, bsdf_id, active) != 0
