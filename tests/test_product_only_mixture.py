@@ -140,7 +140,9 @@ def test_the_plan_gives_the_share_where_it_lowers_the_predicted_variance_and_a_p
     scene = load_scene(builtin_scenes()["sphere_roughplastic"], envmap=str(ENVMAPS_DIR / "potsdamer_platz_1k.hdr"),
                        res=64, spp=4)
     plan_file = str(tmp_path / "plan.json")
-    planned = mi.load_dict({"type": "sh_direct", "plan_file": plan_file})
+    # The sphere on product_only (the plan weighs its share all the same), the ground planned.
+    options = {"type": "sh_direct", "plan_file": plan_file, "strategy": "material=product_only"}
+    planned = mi.load_dict(options)
     choice = planned.plan(scene)
     by_name = {m.name: m for m in choice.materials}
     assert choice.bsdf_shares == ["material"]  # the coated sphere; the diffuse ground's lobe is exact
@@ -150,7 +152,7 @@ def test_the_plan_gives_the_share_where_it_lowers_the_predicted_variance_and_a_p
     assert by_name["material"].variance[Strategy.PRODUCT_ONLY] > 0
 
     forget_shared()  # a new process, as far as the plans are concerned
-    loaded = mi.load_dict({"type": "sh_direct", "plan_file": plan_file})
+    loaded = mi.load_dict(options)
     assert loaded.plan(scene).mode == "file"
     env = loaded.scenes.get(scene)
     assert env.bsdf_shared.of(keys["material"]) and not env.bsdf_shared.of(keys["ground"])

@@ -519,11 +519,12 @@ def materials_report(env, p: Predictions, choice: dict, lean_choice: dict, varia
 
 
 def shared_names(env) -> list:
-    """The materials whose ``product_only`` gives the BSDF its share, by name (none where the
-    option is 0)."""
+    """The materials on ``product_only`` that give the BSDF its share (their lobes walked in
+    SH), by name; none where the option is 0."""
     if env.bsdf_share <= 0:
         return []
-    return sorted(env.material_name(k) for k in env.strategies.ids if env.bsdf_shared.of(k))
+    return sorted(env.material_name(k) for k in env.strategies.ids if env.bsdf_shared.of(k)
+                  and env.strategies.of(k) == Strategy.PRODUCT_ONLY and not env.samples_from_cosine_table(k))
 
 
 def stored_choice(env, stored: dict, mode: str = "file") -> StrategyChoice:
