@@ -99,10 +99,13 @@ def test_chi2_a_bsdf_samples_slot_follows_its_pdf(coated_sphere):
     assert test.run(0.01), test.messages
 
 
-@pytest.mark.parametrize("emitter_selection", ["each", "one"])
-def test_product_only_with_its_bsdf_share_is_unbiased(emitter_selection):
+@pytest.mark.parametrize("emitter_selection, sun_light", [("each", False), ("one", False), ("one", True)])
+def test_product_only_with_its_bsdf_share_is_unbiased(emitter_selection, sun_light):
+    """With ``one``, an emitter sample draws the environment with its selection probability
+    (1/2 beside the area light; 2/7 with a sun and the light weighted 0.5 and 2), which enters the
+    balance over the slots."""
     materials = {"coated": COATED, **{k: MATERIALS[k] for k in ("ggx", "principled", "blend", "diffuse")}}
-    scene = make_scene(materials=materials, area_light=True)
+    scene = make_scene(materials=materials, area_light=True, sun_light=sun_light)
     sh = mi.load_dict({"type": "sh_direct", "max_bands": 5, "strategy": "product_only",
                        "emitter_selection": emitter_selection})
     assert_unbiased(scene, sh, mi.load_dict({"type": "path", "max_depth": 2}))
