@@ -149,6 +149,7 @@ def test_the_plan_gives_the_share_where_it_lowers_the_predicted_variance_and_a_p
     choice = planned.plan(scene)
     by_name = {m.name: m for m in choice.materials}
     assert choice.bsdf_shares == ["material"]  # the coated sphere; the diffuse ground's lobe is exact
+    assert "material: product_only with the BSDF's share" in choice.summary()
     env = planned.scenes.get(scene)
     keys = {env.material_name(k): k for k in env.strategies.ids}
     assert env.bsdf_shared.of(keys["material"]) and not env.bsdf_shared.of(keys["ground"])

@@ -169,7 +169,9 @@ def summary_of(choice: dict) -> str:
     """One line from :meth:`StrategyChoice.as_dict` (also as a report stores it). Materials
     are listed by name: their registry order follows Mitsuba's parallel scene loading, and the
     same plan should read the same in every process."""
-    parts = [f"{m['name']}: {m['strategy']}" + (" (forced)" if m.get("forced") else "")
+    shared = set(choice.get("bsdf_shares", []))
+    parts = [f"{m['name']}: {m['strategy']}" + (" with the BSDF's share" if m["name"] in shared else "")
+             + (" (forced)" if m.get("forced") else "")
              + (f" (variance /{m['predicted_gain']:.2f})" if m["strategy"].startswith("product")
                 and not m.get("forced") else "")
              for m in sorted(choice["materials"], key=lambda m: m["name"]) if m["share"] > 0]
