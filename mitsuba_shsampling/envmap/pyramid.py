@@ -567,6 +567,11 @@ class EnvPyramid:
         self.trimmed_levels: int = int(built["trimmed_levels"])
         #: Sum of the pyramid's root (the sampling target's integral), float64.
         self.total: float = blocks_root
+        #: 1 / :attr:`total` (0 for a black map) as an opaque device value, for the kernels: a
+        #: literal of each map's integral made every kernel that walks the map (quadrature,
+        #: pilots, render) new to Dr.Jit's kernel cache for each new map (docs/MEASUREMENTS.md,
+        #: "A map new to the machine compiles its kernels again").
+        self.inverse_total: mi.Float = dr.opaque(mi.Float, 1.0 / blocks_root if blocks_root > 0 else 0.0)
         #: Integral of scale * luminance over the sphere (radiance x sr).
         self.radiant_total: float = radiant_total
         #: Whether the mean radiance was subtracted (MIS compensation).

@@ -105,7 +105,7 @@ class OracleWarp:
         self.level = min(check_resolution(resolution).bit_length() - 1, pyramid.depth)
         self.resolution = 1 << self.level
         self.defensive_share = check_defensive_share(defensive_share)
-        self.inv_total = 1.0 / pyramid.total if pyramid.total > 0 else 0.0
+        self.inv_total = pyramid.inverse_total
 
     # ------------------------------------------------------------ the table
 

@@ -184,7 +184,7 @@ class ProductWeights:
         #: Levels [sh_depth, walk_depth) weight the children by the closed-form proxy.
         self.walk_depth = sh_depth if proxy is None or proxy_depth is None else max(sh_depth, proxy_depth)
         self.defensive_share = defensive_share
-        self.inv_total = 1.0 / pyramid.total if pyramid.total > 0 else 0.0
+        self.inv_total = pyramid.inverse_total
 
     def root(self) -> ProductState:
         # The share is only known once the root's product weights are (children of level 0).
