@@ -467,12 +467,13 @@ class ProductEnvironment(EnvironmentState):
         probability ``bsdf_draw.share``, from the product otherwise; the pdf returned is
         then the *product's* at the direction (0 where the BSDF's draw failed), which
         :meth:`carried_weight` turns into the sample's balance weight."""
+        if self.warp is None:
+            return self.sample_alone(u, carries_all)
         mixes = self.mixes_bsdf(lobe, use_product, carries_all) if bsdf_draw is not None else False
-        if self.warp is None or mixes is False:
-            return (self.sample_alone(u, carries_all) if self.warp is None else
-                    dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
-                               true_fn=lambda c, v: self.sample_product(c, v, carries_all),
-                               false_fn=lambda c, v: self.sample_alone(v, carries_all)))
+        if mixes is False:
+            return dr.if_stmt(args=(lobe, u), cond=mi.Bool(use_product),
+                              true_fn=lambda c, v: self.sample_product(c, v, carries_all),
+                              false_fn=lambda c, v: self.sample_alone(v, carries_all))
         draw = bsdf_draw
         chose_bsdf = mixes & (draw.u_choice < draw.share)
         # Three ways, each walk only in the packets whose lanes need it.

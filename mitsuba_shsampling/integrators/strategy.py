@@ -106,21 +106,20 @@ def parse_strategy(value: str) -> tuple[str, dict[str, str]]:
     return default or AUTO, per_material
 
 
-class StrategyTable:
-    """Strategy per material: BSDF registry id -> :class:`Strategy` code.
+class MaterialCodes:
+    """A small code per material (BSDF registry id -> uint32), as device data gathered per
+    lane: changing a code reuses the compiled kernel. Ids outside the table read 0."""
 
-    ``initial`` maps the registry ids of the scene's materials that sample the
-    environment (smooth BSDFs) to their first strategy; every other id, and ids
-    outside the table, read :attr:`Strategy.ENVIRONMENT`.
-    """
-
-    def __init__(self, initial: dict[int, Strategy]):
-        self.ids = list(initial)
+    def __init__(self, ids):
+        self.ids = list(ids)
         self._size = max(self.ids, default=0) + 1
-        self._codes = np.full(self._size, int(Strategy.ENVIRONMENT), dtype=np.uint32)
-        self.assign(initial)
+        self._codes = np.zeros(self._size, dtype=np.uint32)
 
-    def _upload(self) -> None:
+    def _set(self, codes: dict[int, int]) -> None:
+        for key, code in codes.items():
+            if key not in self.ids:
+                raise KeyError(f"BSDF registry id {key} is not a material of the table")
+            self._codes[key] = code
         # At least two entries, so that the table is always an array in memory and
         # never a literal of the kernel (a literal would make each assignment a new kernel).
         codes = self._codes if self._size > 1 else np.append(self._codes, np.uint32(0))
@@ -129,49 +128,55 @@ class StrategyTable:
         # Opaque too: the largest registry id changes with Mitsuba's parallel loading order.
         self._device_size = dr.opaque(mi.UInt32, self._size)
 
-    def assign(self, choice: dict[int, Strategy]) -> None:
-        """Set the strategy of the materials in ``choice`` (registry id -> strategy)."""
-        for key, strategy in choice.items():
-            if key not in self.ids:
-                raise KeyError(f"BSDF registry id {key} is not a material of the table")
-            self._codes[key] = int(strategy)
-        self._upload()
+    def _code(self, key: int) -> int:
+        return int(self._codes[key]) if key < self._size else 0
 
-    def of(self, key: int) -> Strategy:
-        """The strategy of the material with registry id ``key``."""
-        return Strategy(int(self._codes[key])) if key < self._size else Strategy.ENVIRONMENT
-
-    def lane(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.UInt32:
-        """Per lane: the strategy code of the BSDF at ``si`` (ENVIRONMENT where not ``active``)."""
+    def _lane(self, si: mi.SurfaceInteraction3f, active) -> mi.UInt32:
         bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
         active = mi.Bool(active) & (bsdf_id < self._device_size)
         return dr.gather(mi.UInt32, self._device, bsdf_id, active)
 
 
-class MaterialFlags:
-    """A yes or no per material (BSDF registry id -> bool), as device data gathered per
-    lane like :class:`StrategyTable`'s codes: setting it reuses the compiled kernel.
-    Ids outside the table read False."""
+class StrategyTable(MaterialCodes):
+    """Strategy per material: BSDF registry id -> :class:`Strategy` code.
+
+    ``initial`` maps the registry ids of the scene's materials that sample the
+    environment (smooth BSDFs) to their first strategy; every other id, and ids
+    outside the table, read :attr:`Strategy.ENVIRONMENT` (code 0).
+    """
+
+    def __init__(self, initial: dict[int, Strategy]):
+        super().__init__(initial)
+        self.assign(initial)
+
+    def assign(self, choice: dict[int, Strategy]) -> None:
+        """Set the strategy of the materials in ``choice`` (registry id -> strategy)."""
+        self._set({key: int(strategy) for key, strategy in choice.items()})
+
+    def of(self, key: int) -> Strategy:
+        """The strategy of the material with registry id ``key``."""
+        return Strategy(self._code(key))
+
+    def lane(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.UInt32:
+        """Per lane: the strategy code of the BSDF at ``si`` (ENVIRONMENT where not ``active``)."""
+        return self._lane(si, active)
+
+
+class MaterialFlags(MaterialCodes):
+    """A yes or no per material (BSDF registry id -> bool), in the form of
+    :class:`StrategyTable`. Ids outside the table read False."""
 
     def __init__(self, ids, value: bool):
-        self.ids = list(ids)
-        self._size = max(self.ids, default=0) + 1
-        self._flags = np.zeros(max(self._size, 2), dtype=np.uint32)  # (at least two: never a literal)
+        super().__init__(ids)
         self.set({key: value for key in self.ids})
 
     def set(self, flags: dict) -> None:
         """Set the flag of the materials in ``flags`` (registry id -> bool)."""
-        for key, value in flags.items():
-            self._flags[key] = int(bool(value))
-        self._device = device_array(mi.UInt32, self._flags)
-        dr.make_opaque(self._device)
-        self._device_size = dr.opaque(mi.UInt32, self._size)
+        self._set({key: int(bool(value)) for key, value in flags.items()})
 
     def of(self, key: int) -> bool:
-        return key < self._size and bool(self._flags[key])
+        return self._code(key) != 0
 
     def lane(self, si: mi.SurfaceInteraction3f, active: mi.Bool = True) -> mi.Bool:
         """Per lane: the flag of the BSDF at ``si`` (False where not ``active``)."""
-        bsdf_id = dr.reinterpret_array(mi.UInt32, si.bsdf())
-        active = mi.Bool(active) & (bsdf_id < self._device_size)
-        return dr.gather(mi.UInt32, self._device, bsdf_id, active) != 0
+        return self._lane(si, active) != 0
