@@ -32,12 +32,17 @@ class Cell:
     ``iz`` and ``iphi`` may be per-lane ``mi.UInt32`` or Python ints; the bounds
     are ``mi.Float`` (z0, z1, zm: lower, upper, middle z; likewise phi); the
     extents ``dz``, ``dphi`` and the solid angle ``area`` are Python floats,
-    equal for all cells of a level.
+    equal for all cells of a level, unless given: a cell of a level that the
+    kernel reads from a device value (an environment pyramid's finest level,
+    :meth:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid.leaf_cell`) takes its
+    extents from there, so that no kernel holds the level as a literal.
     """
 
-    def __init__(self, level: int, iz, iphi):
+    def __init__(self, level, iz, iphi, dz=None, dphi=None):
         self.level, self.iz, self.iphi = level, iz, iphi
-        self.dz, self.dphi = dz, dphi = 2.0 / 2**level, TWO_PI / 2**level
+        if dz is None:
+            dz, dphi = 2.0 / 2**level, TWO_PI / 2**level
+        self.dz, self.dphi = dz, dphi
         self.z0 = dr.fma(mi.Float(iz), dz, -1.0)
         self.z1 = self.z0 + dz
         self.zm = self.z0 + 0.5 * dz

@@ -212,7 +212,7 @@ def product_lane_stages(scene: mi.Scene, env, si: mi.SurfaceInteraction3f) -> li
     walked_cell = Cell(weights.walk_depth, walked_iz, walked_iphi)
 
     def pyramid_descent():
-        leaf, t, p_leaf = descend_pyramid_sample(pyramid, walked_cell, pyramid.depth, walked_t)
+        leaf, t, p_leaf = descend_pyramid_sample(pyramid, walked_cell, walked_t)
         return leaf.iz, leaf.iphi, t, p_leaf
 
     leaf_iz, leaf_iphi, leaf_t, p_leaf = evaluated(*pyramid_descent())

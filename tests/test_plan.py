@@ -426,3 +426,42 @@ def test_materials_of_shapes_without_ids_have_the_same_names_whatever_the_loadin
     first = names((-1.0, 0.0, 1.0))
     assert all(name.startswith("shape") for name in first)
     assert names((1.0, -1.0, 0.0)) == first == names((0.0, 1.0, -1.0))
+
+
+def test_a_map_of_another_depth_compiles_no_kernel_again(monkeypatch):
+    """A user's next map whose pyramid has another depth (another resolution, or features
+    at another scale) reuses every kernel the last one compiled: the descent to the finest
+    level reads the depth from the device. (The map keeps its resolution here: Mitsuba's
+    own envmap compiles its lookups for each resolution.)"""
+    scene = scene_of(("ggx", "diffuse"))
+    sh = sh_direct(strategy="product")
+
+    def kernels_of_a_plan_and_a_render(seed):
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            dr.kernel_history()
+            sh.plan(scene)
+            dr.eval(mi.render(scene, integrator=sh, spp=1, seed=seed))
+            return {k["hash"]: k["operation_count"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+    def new_map(max_depth):
+        monkeypatch.setattr(pyramid_module, "DEFAULT_MAX_DEPTH", max_depth)
+        params = mi.traverse(scene)
+        params["env.data"] = params["env.data"] * 0.5
+        params.update()
+
+    depth = sh.scenes.get(scene).pyramid.depth
+    # Two map updates at the same depth first: the layout of the call data of Mitsuba's
+    # virtual calls alternates between two forms from one envmap update to the next, and
+    # each form is a kernel of its own.
+    seen = {}
+    for seed in (0, 1):
+        new_map(depth)
+        seen.update(kernels_of_a_plan_and_a_render(seed))
+    new_map(depth - 1)
+    deeper = kernels_of_a_plan_and_a_render(2)
+    assert sh.scenes.get(scene).pyramid.depth == depth - 1
+    assert max(deeper.values()) > 1000  # the render kernel is among them
+    assert [ops for h, ops in deeper.items() if h not in seen] == []

@@ -37,7 +37,7 @@ import numpy as np
 
 from ..build_cache import cached_build, content_key
 from ..device_arrays import device_array
-from ..grid import TWO_PI
+from ..grid import TWO_PI, Cell
 
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
 #: pyramid takes 39 MB. Deeper levels would not help the warps anyway: rescaling
@@ -563,6 +563,13 @@ class EnvPyramid:
 
         #: Finest level D; levels 0..D exist.
         self.depth: int = depth
+        #: D and the extents (dz, dphi) of a level-D cell as opaque device values, for the
+        #: kernels: the descent below a warp's own levels loops to D (a literal D made every
+        #: map of a new depth compile the quadrature's, the pilots' and the render's kernels
+        #: again; docs/MEASUREMENTS.md, "A map new to the machine compiles its kernels again").
+        self.finest_level: mi.UInt32 = dr.opaque(mi.UInt32, depth)
+        self.leaf_extent: tuple[mi.Float, mi.Float] = (dr.opaque(mi.Float, 2.0 / 2**depth),
+                                                       dr.opaque(mi.Float, TWO_PI / 2**depth))
         #: Levels built below D and dropped because they did not pay (LEVEL_TOLERANCE).
         self.trimmed_levels: int = int(built["trimmed_levels"])
         #: Sum of the pyramid's root (the sampling target's integral), float64.
@@ -632,6 +639,24 @@ class EnvPyramid:
             return from_records if level == self.depth else from_buffer  # the other is never traced
         return dr.select(finest, from_records, from_buffer)
 
+    def block_children(self, level: mi.UInt32, iz: mi.UInt32, iphi: mi.UInt32) -> mi.Vector4f:
+        """:meth:`children` of a cell of a traced ``level`` < D - 1 (the buffer's levels)."""
+        return dr.gather(mi.Vector4f, self.buffer, block_offset(level) + ((iz << level) | iphi))
+
+    def leaf_children(self, iz: mi.UInt32, iphi: mi.UInt32) -> mi.Vector4f:
+        """:meth:`children` of a level D - 1 cell: the four leaves, from its record."""
+        cell = (iz << (self.finest_level - 1)) | iphi
+        return dr.gather(mi.Vector4f, self.records, (LEAF_RECORD_FLOATS // 4) * cell)
+
+    def leaf_integral(self, iz: mi.UInt32, iphi: mi.UInt32) -> mi.Float:
+        """:meth:`cell_integral` of a level-D cell (a leaf)."""
+        record = ((iz >> 1) << (self.finest_level - 1)) | (iphi >> 1)
+        return dr.gather(mi.Float, self.records, LEAF_RECORD_FLOATS * record + 2 * (iz & 1) + (iphi & 1))
+
+    def leaf_cell(self, iz: mi.UInt32, iphi: mi.UInt32) -> Cell:
+        """The level-D cell (iz, iphi), its level and extents read from device values."""
+        return Cell(self.finest_level, iz, iphi, *self.leaf_extent)
+
     def leaf_corners(self, leaf) -> list:
         """The target at a finest cell's corners (z0 phi0, z0 phi1, z1 phi0, z1 phi1), each
         raised by a tenth of their mean: samples follow the bilinear slope inside the leaf
@@ -639,7 +664,7 @@ class EnvPyramid:
         and the density stays within a bounded factor of uniform everywhere in it. They
         share a cache line with the leaf's own integral (:func:`leaf_records`)."""
         iz, iphi = mi.UInt32(leaf.iz), mi.UInt32(leaf.iphi)
-        record = ((iz >> 1) << (self.depth - 1)) | (iphi >> 1)
+        record = ((iz >> 1) << (self.finest_level - 1)) | (iphi >> 1)
         child = 2 * (iz & 1) + (iphi & 1)
         word = dr.reinterpret_array(mi.UInt32, dr.gather(mi.Float, self.records, LEAF_RECORD_FLOATS * record + 4 + child))
         values = [mi.Float((word >> shift) & 0xFF) for shift in (0, 8, 16, 24)]

@@ -53,12 +53,12 @@ def finish_sample(pyramid, cell: Cell, t: mi.Point2f, prob, valid):
     """(world direction, solid-angle pdf) of a walk that reached ``cell`` with probability
     ``prob`` and rescaled sample ``t``: the pyramid's descent to its finest level, then
     :func:`place_in_leaf`. :func:`finish_pdf` is its density."""
-    leaf, t, p_leaf = descend_pyramid_sample(pyramid, cell, pyramid.depth, t)
+    leaf, t, p_leaf = descend_pyramid_sample(pyramid, cell, t)
     return place_in_leaf(pyramid, leaf, t, prob * p_leaf, valid)
 
 
 def finish_pdf(pyramid, cell: Cell, prob, z, phi) -> mi.Float:
     """Density (per steradian) of :func:`finish_sample` at grid coordinates (z, phi) of
     ``cell``, reached with probability ``prob``."""
-    leaf, p_leaf = descend_pyramid_pdf(pyramid, cell, pyramid.depth, z, phi)
+    leaf, p_leaf = descend_pyramid_pdf(pyramid, cell, z, phi)
     return prob * p_leaf * leaf_pdf(pyramid, leaf, z, phi)

@@ -311,11 +311,11 @@ def walk_pdf_1d(provider: BinaryWeights, depth: int, x, x0: float, x1: float):
 
 # ------------------------------------------------ additive pyramid, telescoped
 
-def descend_pyramid_sample(pyramid, cell: Cell, depth: int, u: mi.Point2f):
-    """Continue a walk from ``cell`` down to level ``depth`` of an *additive*
-    pyramid (every cell's integral is the sum of its four children's, e.g.
-    :class:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid`), choosing children
-    in proportion to their integrals with the sample ``u``.
+def descend_pyramid_sample(pyramid, cell: Cell, u: mi.Point2f, depth: int | None = None):
+    """Continue a walk from ``cell`` down to level ``depth`` (default: the finest,
+    D) of an *additive* pyramid (every cell's integral is the sum of its four
+    children's, e.g. :class:`~mitsuba_shsampling.envmap.pyramid.EnvPyramid`),
+    choosing children in proportion to their integrals with the sample ``u``.
 
     Returns (leaf cell, rescaled sample in the leaf, P(leaf | cell)). The
     branch probabilities telescope to leaf integral / cell integral, so no
@@ -324,33 +324,59 @@ def descend_pyramid_sample(pyramid, cell: Cell, depth: int, u: mi.Point2f):
     probability are finite and non-negative with a positive sum, so unlike
     :func:`walk_sample` no clamping is needed, and the splits are those of
     :func:`walk_sample_absolute` (one division each).
+
+    The descent to D is a loop bounded by the pyramid's device value of D
+    (``finest_level``), its last split read from the leaf records: one kernel
+    serves every map deeper than ``cell``'s level + 1, whatever its depth.
     """
-    iz, iphi = cell.iz, cell.iphi
-    uz, uphi = u.x, u.y
-    cell_integral = leaf_integral = mi.Float(1.0)
-    for level in range(cell.level, depth):
-        w = pyramid.children(level, iz, iphi)
-        if level == cell.level:
-            cell_integral = (w[0] + w[1]) + (w[2] + w[3])
-        a, b, uz, uphi, leaf_integral = _quad_split(w, uz, uphi)
-        iz, iphi = 2 * iz + dr.select(a, 1, 0), 2 * iphi + dr.select(b, 1, 0)
-    return Cell(depth, iz, iphi), mi.Point2f(uz, uphi), leaf_integral / cell_integral
+    to_leaves = depth is None or depth == pyramid.depth
+    if cell.level >= (pyramid.depth if to_leaves else depth):
+        return cell, u, mi.Float(1.0)
+    start = cell.level
+    stop = pyramid.finest_level - 1 if to_leaves else depth  # the buffer's levels end there
+
+    def split(w, level, iz, iphi, uz, uphi, cell_integral):
+        cell_integral = dr.select(level == start, (w[0] + w[1]) + (w[2] + w[3]), cell_integral)
+        a, b, uz, uphi, chosen = _quad_split(w, uz, uphi)
+        return level + 1, 2 * iz + dr.select(a, 1, 0), 2 * iphi + dr.select(b, 1, 0), uz, uphi, cell_integral, chosen
+
+    def descend(level, iz, iphi, uz, uphi, cell_integral, _):
+        return split(pyramid.block_children(level, iz, iphi), level, iz, iphi, uz, uphi, cell_integral)
+
+    state = (mi.UInt32(start), mi.UInt32(cell.iz), mi.UInt32(cell.iphi), mi.Float(u.x), mi.Float(u.y),
+             mi.Float(1.0), mi.Float(1.0))
+    state = dr.while_loop(state, lambda level, *_: level < stop, descend)
+    if not to_leaves:
+        _, iz, iphi, uz, uphi, cell_integral, leaf_integral = state
+        return Cell(depth, iz, iphi), mi.Point2f(uz, uphi), leaf_integral / cell_integral
+    _, iz, iphi, uz, uphi, cell_integral, leaf_integral = split(pyramid.leaf_children(*state[1:3]), *state[:6])
+    return pyramid.leaf_cell(iz, iphi), mi.Point2f(uz, uphi), leaf_integral / cell_integral
 
 
-def descend_pyramid_pdf(pyramid, cell: Cell, depth: int, z, phi):
+def descend_pyramid_pdf(pyramid, cell: Cell, z, phi, depth: int | None = None):
     """P(leaf | cell) of :func:`descend_pyramid_sample` for the leaf holding
     (z, phi), and that leaf. The leaf is found by comparisons with the cells'
-    midpoints, as the walks do (no gathers); two gathers give the integrals."""
-    iz, iphi = cell.iz, cell.iphi
-    for level in range(cell.level, depth):
-        step = Cell(level, iz, iphi)
-        iz = 2 * iz + dr.select(z >= step.zm, 1, 0)
-        iphi = 2 * iphi + dr.select(phi >= step.phim, 1, 0)
-    leaf = Cell(depth, iz, iphi)
-    if cell.level == depth:
-        return leaf, mi.Float(1.0)
+    midpoints, as the walks do (no gathers; the cells' extents halve exactly
+    from level to level, so the midpoints are those of :class:`~..grid.Cell`);
+    two gathers give the integrals."""
+    to_leaves = depth is None or depth == pyramid.depth
+    if cell.level >= (pyramid.depth if to_leaves else depth):
+        return cell, mi.Float(1.0)
+    stop = pyramid.finest_level if to_leaves else depth
+
+    def descend(level, iz, iphi, dz, dphi):
+        zm = dr.fma(mi.Float(iz), dz, -1.0) + 0.5 * dz
+        phim = mi.Float(iphi) * dphi + 0.5 * dphi
+        return (level + 1, 2 * iz + dr.select(z >= zm, 1, 0), 2 * iphi + dr.select(phi >= phim, 1, 0),
+                0.5 * dz, 0.5 * dphi)
+
+    state = (mi.UInt32(cell.level), mi.UInt32(cell.iz), mi.UInt32(cell.iphi), mi.Float(cell.dz), mi.Float(cell.dphi))
+    _, iz, iphi, _, _ = dr.while_loop(state, lambda level, *_: level < stop, descend)
+    if to_leaves:
+        leaf, inside = pyramid.leaf_cell(iz, iphi), pyramid.leaf_integral(iz, iphi)
+    else:
+        leaf, inside = Cell(depth, iz, iphi), pyramid.cell_integral(depth, iz, iphi)
     parent = pyramid.cell_integral(cell.level, cell.iz, cell.iphi)
-    inside = pyramid.cell_integral(depth, iz, iphi)
     return leaf, dr.select(parent > 0, inside / dr.select(parent > 0, parent, 1.0), 0.0)
 
 

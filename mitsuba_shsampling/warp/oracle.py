@@ -154,7 +154,7 @@ class OracleWarp:
         ux = dr.select(from_env, u.x / table.share, (u.x - table.share) / (1.0 - table.share))
         u = mi.Point2f(dr.clip(ux, 0.0, LAST_BELOW_ONE), u.y)
         env_cell, env_t, _ = descend_pyramid_sample(
-            self.pyramid, Cell(0, mi.UInt32(0), mi.UInt32(0)), self.level, u)
+            self.pyramid, Cell(0, mi.UInt32(0), mi.UInt32(0)), u, self.level)
         iz, iphi, t = self._pick_cell(f, table, u, active & ~from_env)
         cell = Cell(self.level, dr.select(from_env, env_cell.iz, iz), dr.select(from_env, env_cell.iphi, iphi))
         t = dr.select(from_env, env_t, t)
