@@ -631,9 +631,9 @@ class EnvPyramid:
         parent_level = dr.maximum(mi.UInt32(level), 1) - 1
         parent = ((iz >> 1) << parent_level) | (iphi >> 1)
         child = 2 * (iz & 1) + (iphi & 1)
-        finest = mi.UInt32(level) == self.depth
+        finest = mi.UInt32(level) == self.finest_level
         in_buffer = dr.select(mi.UInt32(level) == 0, 0, 4 * (block_offset(parent_level) + parent) + child)
-        from_records = dr.gather(mi.Float, self.records, LEAF_RECORD_FLOATS * parent + child, active & finest)
+        from_records = self.leaf_integral(iz, iphi, active & finest)
         from_buffer = dr.gather(mi.Float, self.buffer, in_buffer, active & ~finest)
         if isinstance(level, numbers.Integral):
             return from_records if level == self.depth else from_buffer  # the other is never traced
@@ -648,10 +648,10 @@ class EnvPyramid:
         cell = (iz << (self.finest_level - 1)) | iphi
         return dr.gather(mi.Vector4f, self.records, (LEAF_RECORD_FLOATS // 4) * cell)
 
-    def leaf_integral(self, iz: mi.UInt32, iphi: mi.UInt32) -> mi.Float:
-        """:meth:`cell_integral` of a level-D cell (a leaf)."""
+    def leaf_integral(self, iz: mi.UInt32, iphi: mi.UInt32, active: mi.Bool = True) -> mi.Float:
+        """:meth:`cell_integral` of a level-D cell (a leaf), from its parent's record."""
         record = ((iz >> 1) << (self.finest_level - 1)) | (iphi >> 1)
-        return dr.gather(mi.Float, self.records, LEAF_RECORD_FLOATS * record + 2 * (iz & 1) + (iphi & 1))
+        return dr.gather(mi.Float, self.records, LEAF_RECORD_FLOATS * record + 2 * (iz & 1) + (iphi & 1), active)
 
     def leaf_cell(self, iz: mi.UInt32, iphi: mi.UInt32) -> Cell:
         """The level-D cell (iz, iphi), its level and extents read from device values."""
