@@ -457,10 +457,9 @@ def test_coarse_leaf_excess_is_zero_for_a_constant_map_and_black_map():
     assert coarse_leaf_excess(np.zeros((64, 64)), np.zeros((65, 65)), 4) == 0.0
 
 
-def test_the_level_test_and_the_leaf_records_are_the_same_computed_block_by_block(monkeypatch):
-    """Both work through the finest level a block of rows at a time (to keep their
-    temporaries in the cache); a block size that cuts the level in many pieces gives the
-    values of one block over the whole level."""
+def test_the_leaf_records_are_the_same_computed_block_by_block(monkeypatch):
+    """They are packed a block of rows at a time (to keep the temporaries in the cache); a
+    block size that cuts the level in many pieces gives the bits of one block over the whole."""
     image = random_latlong(16, 32, seed=5)
     image[3, 7] = 300.0
     luminance = (image @ np.array([0.212671, 0.715160, 0.072169])).astype(np.float32)
@@ -468,11 +467,34 @@ def test_the_level_test_and_the_leaf_records_are_the_same_computed_block_by_bloc
     finest = fine.level_numpy(7).astype(np.float64)
     corners = np.maximum(_corner_radiance(luminance, 128), 0)
     blocks = finest.astype(np.float32).reshape(64, 2, 64, 2).transpose(0, 2, 1, 3).reshape(-1, 4)
-    whole = [coarse_leaf_excess(finest, corners, level) for level in (6, 5, 3)], leaf_records(blocks, corners)
+    whole = leaf_records(blocks, corners)
     monkeypatch.setattr(pyramid_module, "_BLOCK_CELLS", 300)  # 2-3 rows of cells a block
-    pieces = [coarse_leaf_excess(finest, corners, level) for level in (6, 5, 3)], leaf_records(blocks, corners)
-    assert pieces[0] == pytest.approx(whole[0], rel=1e-12)
-    assert np.array_equal(pieces[1].view(np.uint32), whole[1].view(np.uint32))
+    assert np.array_equal(leaf_records(blocks, corners).view(np.uint32), whole.view(np.uint32))
+
+
+def test_coarse_leaf_excess_matches_a_float64_numpy_reference_at_every_level():
+    """The kernel against the formula written out on the host: leaf shares, the corner floor
+    and the bilinear sub-cell masses, sum t^2 / q - 1."""
+    image = random_latlong(16, 32, seed=6)
+    image[9, 20] = 250.0
+    luminance = (image @ np.array([0.212671, 0.715160, 0.072169])).astype(np.float32)
+    finest = EnvPyramid.from_latlong(image, max_depth=7, level_tolerance=0).level_numpy(7).astype(np.float64)
+    corners = np.maximum(_corner_radiance(luminance, 128), 0).astype(np.float64)
+    t = finest / finest.sum()
+    for level in (6, 5, 3):
+        parts, m = 128 >> level, 1 << level
+        c = corners[::parts, ::parts]
+        v = [c[:-1, :-1], c[:-1, 1:], c[1:, :-1], c[1:, 1:]]
+        v = [x + 0.025 * sum(v) for x in v]
+        leaf = t.reshape(m, parts, m, parts).sum(axis=(1, 3))
+        v = [x * leaf / (0.25 * sum(v)) for x in v]
+        edges = np.linspace(0, 1, parts + 1)
+        high = 0.5 * np.diff(edges ** 2)
+        low = np.diff(edges) - high
+        q = (low[None, :, None, None] * (v[0][:, None, :, None] * low + v[1][:, None, :, None] * high)
+             + high[None, :, None, None] * (v[2][:, None, :, None] * low + v[3][:, None, :, None] * high))
+        reference = float(np.sum(t.reshape(m, parts, m, parts) ** 2 / q)) - 1.0
+        assert coarse_leaf_excess(finest, corners, level) == pytest.approx(reference, rel=1e-9)
 
 
 def test_the_compensated_and_plain_pyramids_of_a_map_share_its_finest_level_and_keep_nothing():
