@@ -27,6 +27,7 @@ import hashlib
 import json
 import os
 import tempfile
+import threading
 import warnings
 from collections import OrderedDict
 from typing import Callable
@@ -43,6 +44,8 @@ IN_PROCESS_ENTRIES = 64
 Record = dict
 
 _memory: "OrderedDict[str, Record]" = OrderedDict()
+#: Builds run in threads (the pyramids beside the lobe fits): the table is shared.
+_memory_lock = threading.Lock()
 
 
 def cache_folder() -> str | None:
@@ -94,10 +97,11 @@ def cached_build(kind: str, key: str, build: Callable[[], Record]) -> Record:
     """``build()``'s record for ``key``, built only if neither this process nor the disk
     cache has it. ``kind`` names the sort of build (its files' folder)."""
     name = f"{kind}/{key}"
-    record = _memory.get(name)
-    if record is not None:
-        _memory.move_to_end(name)
-        return record
+    with _memory_lock:
+        record = _memory.get(name)
+        if record is not None:
+            _memory.move_to_end(name)
+            return record
     folder = cache_folder()
     path = os.path.join(folder, kind, key + ".npz") if folder else None
     record = _read(path) if path else None
@@ -105,9 +109,10 @@ def cached_build(kind: str, key: str, build: Callable[[], Record]) -> Record:
         record = build()
         if path:
             _write(path, record)
-    _memory[name] = record
-    while len(_memory) > IN_PROCESS_ENTRIES:
-        _memory.popitem(last=False)
+    with _memory_lock:
+        _memory[name] = record
+        while len(_memory) > IN_PROCESS_ENTRIES:
+            _memory.popitem(last=False)
     return record
 
 
