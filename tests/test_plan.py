@@ -30,7 +30,7 @@ from mitsuba_shsampling.integrators.options import OptionError  # noqa: E402
 from mitsuba_shsampling.integrators.sharing import forget_shared  # noqa: E402
 from mitsuba_shsampling.lobes import scene_lobes  # noqa: E402
 
-from test_integrators import MATERIALS, RES, make_scene, sphere  # noqa: E402
+from test_integrators import MATERIALS, make_scene, sphere  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PLANNED = ("ggx", "diffuse", "roughplastic")
@@ -186,51 +186,6 @@ def test_the_plan_and_the_render_read_no_memory_whose_alignment_varies_from_run_
     assert len(kernels) > 10
     unaligned = [k["hash"] for k in kernels if "align 1," in k["ir"].getvalue()]
     assert unaligned == []
-
-
-# ------------------------------------------------------------ pilots sized to their statistic
-
-def test_the_pilots_of_a_large_film_render_the_same_view_a_whole_factor_coarser(monkeypatch, tmp_path):
-    """A film of at least 4 PILOT_LANES pixels: the pilot passes render the same camera on a
-    film k = floor(sqrt(pixels / PILOT_LANES)) times coarser, with the scene's sampler."""
-    monkeypatch.setenv("SHSAMPLING_CACHE_DIR", str(tmp_path))  # planned here, not kept from another test
-    lanes = RES * RES // 10  # k = 3: 24 x 24 pixels -> 8 x 8
-    monkeypatch.setattr(pilots, "PILOT_LANES", lanes)
-    monkeypatch.setattr(chooser_module, "PILOT_LANES", lanes)
-    shapes, original = [], chooser_module.frozen_pilots
-
-    def spied(render, env, objects):
-        replay = original(render, env, objects)
-
-        def watched(spp, seed):
-            image = replay(spp, seed)
-            shapes.append(tuple(dr.shape(image))[:2])
-            return image
-        watched.release = replay.release
-        return watched
-    monkeypatch.setattr(chooser_module, "frozen_pilots", spied)
-    scene = scene_of()
-    choice = sh_direct().plan(scene)
-    assert shapes and set(shapes) == {(RES // 3, RES // 3)}
-    assert choice.mode == "estimate" and choice.pilots.spp == 1
-    pilot = pilots.pilot_sensor(scene.sensors()[0])
-    assert pilot.sampler().class_name() == scene.sensors()[0].sampler().class_name()
-    image = mi.render(scene, integrator=sh_direct(), spp=1)  # the user's film as it was
-    assert tuple(dr.shape(image))[:2] == (RES, RES)
-
-
-def test_a_small_film_a_cropped_film_and_an_unknown_camera_are_piloted_as_they_are(monkeypatch):
-    monkeypatch.setattr(pilots, "PILOT_LANES", RES * RES // 10)
-    sensor = scene_of().sensors()[0]
-    assert pilots.pilot_sensor(sensor) is not sensor  # large against this PILOT_LANES
-    cropped = mi.load_dict({"type": "perspective", "film": {"type": "hdrfilm", "width": RES, "height": RES,
-                                                           "crop_width": RES // 2, "crop_height": RES // 2}})
-    assert pilots.pilot_sensor(cropped) is cropped
-    batch = mi.load_dict({"type": "batch", "film": {"type": "hdrfilm", "width": 2 * RES, "height": RES},
-                          "left": {"type": "perspective"}, "right": {"type": "perspective"}})
-    assert pilots.pilot_sensor(batch) is batch
-    monkeypatch.setattr(pilots, "PILOT_LANES", RES * RES)
-    assert pilots.pilot_sensor(sensor) is sensor  # fewer than 4 PILOT_LANES pixels
 
 
 # ------------------------------------------------------------ pinning

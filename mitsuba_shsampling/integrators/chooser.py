@@ -51,7 +51,7 @@ import numpy as np
 
 from .costs import CostModel, cost_model
 from .pilots import (LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate, cosine_pilot,
-                     film_variance_factor, frozen_pilots, measure_pass_costs, pilot_sensor)
+                     film_variance_factor, frozen_pilots, measure_pass_costs)
 from .quadrature import PRODUCT_ONLY_SHARED, camera_frames, frame_variances
 from . import plan_file
 from .strategy import ESTIMATE, MEASURE, Strategy, strategy_named
@@ -374,10 +374,9 @@ def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool) -> dic
     return candidates
 
 
-def run_pilots(env, film: mi.Film, candidates: dict, render_pass: Callable, timed: bool) -> Pilots:
-    """The pilot passes of ``candidates`` on ``film`` (the pilots' own: :func:`~.pilots.pilot_sensor`),
-    at least :data:`~.pilots.PILOT_LANES` camera samples each."""
-    film = film.crop_size()
+def run_pilots(env, sensor: mi.Sensor, candidates: dict, render_pass: Callable, timed: bool) -> Pilots:
+    """The pilot passes of ``candidates``, at least :data:`~.pilots.PILOT_LANES` camera samples each."""
+    film = sensor.film().crop_size()
     spp = max(1, math.ceil(PILOT_LANES / (int(film[0]) * int(film[1]))))
     if timed:
         return measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp)
@@ -437,7 +436,7 @@ def apply_choice(env, choice: dict, lean: bool) -> None:
 
 def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: Callable[[int, int], object],
                       pilots: Pilots | None = None, costs: CostModel | None = None,
-                      forced: dict | None = None, pilot_film: mi.Film | None = None) -> StrategyChoice:
+                      forced: dict | None = None) -> StrategyChoice:
     """Choose and assign (``env.strategies``) a strategy for every material; when no
     product strategy pays for the time its code costs every lane, drop the
     product altogether (:meth:`ProductEnvironment.drop_product`).
@@ -463,8 +462,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         candidates = pilot_candidates(env, p, lean_choice, timed)
         fresh = pilots is None  # (pilots of an earlier choice: the scene's parameters changed)
         if fresh:
-            pilots = run_pilots(env, pilot_film or sensor.film(), candidates, render_pass, timed)
-        variance, rest, shared, fit = calibrated(p, pilots, candidates, pilot_film or sensor.film())
+            pilots = run_pilots(env, sensor, candidates, render_pass, timed)
+        variance, rest, shared, fit = calibrated(p, pilots, candidates, sensor.film())
         if timed:
             costs = CostModel.from_pass_times(pilots.pass_time, pilot_shares(env, p), "measured in the scene")
         lean_time, base, extra = pass_times(costs, env, p.materials)
@@ -588,14 +587,13 @@ class StrategyChooser:
         """:meth:`before_render` for a plugin derived from ``mi.SamplingIntegrator``
         (``sh_direct``, ``sh_path``): its pilots render through Mitsuba's
         ``SamplingIntegrator.render``, past the plugin's own. Returns ``env``."""
-        self.before_render(env, scene, sensor, lambda spp, seed, pilot: mi.SamplingIntegrator.render(
-            integrator, scene, pilot, seed, spp), integrator)
+        self.before_render(env, scene, sensor, lambda spp, seed: mi.SamplingIntegrator.render(
+            integrator, scene, sensor, seed, spp), integrator)
         return env
 
     def before_render(self, env, scene: mi.Scene, sensor, render: Callable, integrator=None) -> None:
-        """Plan for ``env`` if it awaits a plan. ``render(spp, seed, sensor)`` returns one
-        pass's image from ``sensor`` with ``integrator`` as it is (the pilots, from
-        :func:`~.pilots.pilot_sensor`)."""
+        """Plan for ``env`` if it awaits a plan. ``render(spp, seed)`` returns one
+        pass's image with ``integrator`` as it is (the pilots)."""
         if not env.awaits_choice:
             return
         if isinstance(sensor, int):
@@ -625,12 +623,7 @@ class StrategyChooser:
         # Untimed pilots differ only in the strategy table, which is device data: one
         # recording replays them all (pilots.frozen_pilots). Timed pilots include the lean
         # kernel, another trace: they render traced.
-        pilot = pilot_sensor(sensor)
-
-        def render_pilot(spp: int, seed: int):
-            return render(spp, seed, pilot)
-
-        replay = frozen_pilots(render_pilot, env, (scene, pilot, integrator)) if self.mode == ESTIMATE else render_pilot
+        replay = frozen_pilots(render, env, (scene, sensor, integrator)) if self.mode == ESTIMATE else render
 
         def render_pass(spp: int, seed: int):
             image = replay(spp, seed)
@@ -646,12 +639,11 @@ class StrategyChooser:
         self.piloting = True
         try:
             choice = choose_strategies(env, sensor, self.n_e, self.n_b, render_pass, known,
-                                       None if self.mode == MEASURE else cost_model(self.kind), env.forced,
-                                       pilot.film())
+                                       None if self.mode == MEASURE else cost_model(self.kind), env.forced)
         finally:
             self.piloting = False
             sampler.set_sample_count(sample_count)
-            if replay is not render_pilot:
+            if replay is not render:
                 replay.release()
         self._scene, self._pilots = scene, choice.pilots
         return choice

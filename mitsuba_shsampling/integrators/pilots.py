@@ -18,7 +18,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..cameras import camera_on_film
 from ..device_arrays import device_array
 from ..frozen import collector_paused, held_inputs
 from ..report.metrics import pixel_variance
@@ -26,8 +25,7 @@ from ..timing import kernel_time
 from .strategy import Strategy
 
 PILOT_LANES = 2**17
-"""Camera samples per pilot pass (spp is rounded up so that the film gets at least this many;
-a film of four times as many pixels or more is rendered coarser: :func:`pilot_sensor`)."""
+"""Camera samples per pilot pass (spp is rounded up so that the film gets at least this many)."""
 
 PILOT_REPEATS = 4
 """Timed pilot passes per strategy (interleaved; the fastest counts: whatever else
@@ -104,33 +102,6 @@ def film_variance_factor(film: mi.Film, spp: int) -> float:
     w = np.asarray(rfilter.eval(device_array(mi.Float, x)).numpy(), dtype=np.float64)
     ratio = np.mean(w * w) / (np.mean(w) ** 2 * 2 * radius)  # int w^2 / (int w)^2 on the even grid
     return ratio ** 2 / spp
-
-
-def pilot_sensor(sensor: mi.Sensor) -> mi.Sensor:
-    """The camera the pilot passes render with: ``sensor``, or where its film has at least
-    4 :data:`PILOT_LANES` pixels, the same camera on a film a whole factor k coarser in each
-    axis, k = floor(sqrt(pixels / PILOT_LANES)) (a 1920 x 1440 film: k = 4, 480 x 360), with
-    a copy of its sampler.
-
-    Why: a pilot pass needs about :data:`PILOT_LANES` camera samples, not one per pixel.
-    At one sample per pixel of a 1920 x 1440 film the nine pilot passes and their images
-    took 11 s of the plan (docs/MEASUREMENTS.md). The coarser film sees the same image, so
-    the quadrature's film positions (:func:`~.quadrature.camera_frames`) and the pilots
-    still cover the same view; its pixels are k x k of the film's, so the variance the pilots
-    measure beyond the quadrature (``S``, :func:`calibrate`: antialiasing, texture detail)
-    is the one of pixels that size. A film with a crop window, or a camera that cannot be
-    built again (:data:`~mitsuba_shsampling.cameras.SUPPORTED_CAMERAS`), is rendered as it is."""
-    film = sensor.film()
-    width, height = (int(v) for v in film.size())
-    crop_size, crop_offset = film.crop_size(), film.crop_offset()
-    factor = int(np.sqrt(width * height / PILOT_LANES))
-    cropped = (int(crop_size[0]), int(crop_size[1]), int(crop_offset[0]), int(crop_offset[1])) != (width, height, 0, 0)
-    if factor < 2 or cropped:
-        return sensor
-    try:
-        return camera_on_film(sensor, max(1, width // factor), max(1, height // factor), sensor.sampler().fork())
-    except ValueError:
-        return sensor
 
 
 def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], object],

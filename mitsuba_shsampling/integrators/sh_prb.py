@@ -101,8 +101,8 @@ class SHPRBIntegrator(RBIntegrator):
         state = self.scenes.get(scene, stale_ok=stale_ok)
         self._renders_since_build = 0 if state is not self._state else self._renders_since_build + 1
         self._state = state
-        def pilot_pass(pilot_spp, pilot_seed, pilot_sensor):
-            return super(SHPRBIntegrator, self).render(scene, pilot_sensor, pilot_seed, pilot_spp)
+        def pilot_pass(pilot_spp, pilot_seed):
+            return super(SHPRBIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
 
         self.chooser.before_render(state, scene, sensor, pilot_pass, self)
         return state

@@ -27,10 +27,22 @@ import numpy as np
 
 import mitsuba as mi
 
-from ..cameras import SUPPORTED_CAMERAS, camera_on_film
 from ..envmap.emitter import envmap_like
 from ..scenes import SceneError, scene_envmap
 from ..traversal import readable_parameters
+
+#: Camera plugins whose parameters :func:`comparison_sensor` can carry over.
+SUPPORTED_CAMERAS = {"PerspectiveCamera": "perspective", "ThinLensCamera": "thinlens",
+                     "OrthographicCamera": "orthographic"}
+
+
+def _scalar(value) -> float:
+    return float(np.array(value).ravel()[0])
+
+
+def _transform(value) -> mi.ScalarTransform4f:
+    matrix = np.array(value.matrix, dtype=np.float64)
+    return mi.ScalarTransform4f(matrix[..., 0] if matrix.ndim == 3 else matrix)
 
 
 def comparison_sensor(scene: mi.Scene, width: int, sampler: str, spp: int) -> mi.Sensor:
@@ -43,12 +55,32 @@ def comparison_sensor(scene: mi.Scene, width: int, sampler: str, spp: int) -> mi
     if not scene.sensors():
         raise SceneError("the scene has no sensor to render from")
     sensor = scene.sensors()[0]
-    if sensor.class_name() not in SUPPORTED_CAMERAS:
+    kind = SUPPORTED_CAMERAS.get(sensor.class_name())
+    if kind is None:
         raise SceneError(f"compare renders perspective, thin-lens and orthographic cameras; this "
                          f"scene's sensor is a {sensor.class_name()}")
-    size = sensor.film().size()
+    params = mi.traverse(sensor)
+    film = sensor.film()
+    size = film.size()
     height = max(1, round(width * int(size[1]) / int(size[0])))
-    return camera_on_film(sensor, width, height, {"type": sampler, "sample_count": spp})
+    desc = {
+        "type": kind,
+        "to_world": _transform(params["to_world"]),
+        "near_clip": _scalar(params["near_clip"]),
+        "far_clip": _scalar(params["far_clip"]),
+        "film": {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
+                 "rfilter": film.rfilter()},
+        "sampler": {"type": sampler, "sample_count": spp},
+    }
+    if kind in ("perspective", "thinlens"):
+        desc.update(fov=_scalar(params["x_fov"]), fov_axis="x")
+    if kind == "perspective":
+        desc.update(principal_point_offset_x=_scalar(params["principal_point_offset_x"]),
+                    principal_point_offset_y=_scalar(params["principal_point_offset_y"]))
+    if kind == "thinlens":
+        desc.update(aperture_radius=_scalar(params["aperture_radius"]),
+                    focus_distance=_scalar(params["focus_distance"]))
+    return mi.load_dict(desc)
 
 
 def with_environment(scene: mi.Scene, filename: str | None = None,
