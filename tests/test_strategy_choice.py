@@ -22,7 +22,8 @@ from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.chooser import (choose_strategies, confirm_by_timing,  # noqa: E402
                                                     minimise_error_at_equal_time)
 from mitsuba_shsampling.integrators.pilots import (LEAN, Candidate, Pilots, calibrate, cosine_pilot,  # noqa: E402
-                                                   film_variance_factor, measure_pass_costs)
+                                                   film_mean_pixel_variance, film_variance_factor,
+                                                   measure_pass_costs)
 from mitsuba_shsampling.integrators.quadrature import camera_frames, frame_variances  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
@@ -272,6 +273,18 @@ def test_predicted_variances_are_averaged_over_colour_channels_as_the_reports_ms
 
 
 # ------------------------------------------------------------ the pilots and the shared variance
+
+def test_the_pilots_measure_the_reports_per_pixel_variance_where_the_images_are():
+    """The film's mean of report.metrics.pixel_variance (unbiased across the passes, channels
+    averaged over the finite ones, 0 where none is), computed on the device images."""
+    rng = np.random.default_rng(0)
+    images = (rng.random((3, 17, 23, 3)) * 5).astype(np.float32)
+    images[0, 3, 4, 1] = np.nan        # one channel of a pixel lost
+    images[1, 5, 6, :] = np.inf        # a whole pixel lost
+    images[2, 7, 8, 0] = -np.inf
+    expected = float(np.mean(pixel_variance(images.astype(np.float64))))
+    assert film_mean_pixel_variance([mi.TensorXf(i) for i in images]) == pytest.approx(expected, rel=1e-12)
+
 
 #: A diffuse floor whose albedo alternates 400 times across the view: within a pixel the
 #: texture varies more than the lighting estimate does.

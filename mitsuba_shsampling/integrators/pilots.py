@@ -20,7 +20,6 @@ import numpy as np
 
 from ..device_arrays import device_array
 from ..frozen import collector_paused, held_inputs
-from ..report.metrics import pixel_variance
 from ..timing import kernel_time
 from .strategy import Strategy
 
@@ -104,6 +103,31 @@ def film_variance_factor(film: mi.Film, spp: int) -> float:
     return ratio ** 2 / spp
 
 
+def film_mean_pixel_variance(images: list) -> float:
+    """The film's mean of the report's per-pixel variance
+    (:func:`~mitsuba_shsampling.report.metrics.pixel_variance`: unbiased across the K >= 2
+    ``images``, channels averaged over the finite ones, 0 where none is) of K pilot images
+    (tensors (H, W, C)), in float64 where the images are.
+
+    Why not in numpy: the images' copies to the host and the numpy passes over them cost
+    more than the pilots' kernels at high resolution (1920 x 1440: 5.4 s of the plan's 11.3 s
+    of pilots; docs/MEASUREMENTS.md)."""
+    count = len(images)
+    height, width, channels = (int(n) for n in dr.shape(images[0]))
+    values = [mi.Float64(image.array) for image in images]
+    pixel = dr.arange(mi.UInt32, height * width) * channels
+    total, finite = dr.zeros(mi.Float64, height * width), dr.zeros(mi.UInt32, height * width)
+    for channel in range(channels):
+        x = [dr.gather(mi.Float64, v, pixel + channel) for v in values]
+        mean = sum(x) / count
+        ok = dr.all([dr.isfinite(v) for v in x])
+        variance = sum(dr.square(v - mean) for v in x) / (count - 1)
+        total += dr.select(ok, variance, 0.0)
+        finite += dr.select(ok, 1, 0)
+    per_pixel = dr.select(finite > 0, total / mi.Float64(dr.maximum(finite, 1)), 0.0)
+    return float(dr.mean(per_pixel).numpy()[0])
+
+
 def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], object],
                        repeats: int = PILOT_REPEATS, spp: int = 1, timed: bool = True) -> Pilots:
     """Pass time (s) and image variance per candidate: ``candidates`` maps a name to
@@ -139,13 +163,13 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
                 else:
                     image = render_pass(PILOT_SEED + round_)
                 if image is not None:
-                    images[name].append(np.asarray(image, dtype=np.float64))
+                    images[name].append(image)
     finally:
         env.warp, env.warp_plain = warps
         env.pilot_walks = False
         table.assign(saved)
     # The report's measure of noise (report.metrics): per-pixel variance, channel-averaged.
-    variance = {name: float(np.mean(pixel_variance(np.stack(i)))) for name, i in images.items() if len(i) > 1}
+    variance = {name: film_mean_pixel_variance(i) for name, i in images.items() if len(i) > 1}
     return Pilots({name: min(t) for name, t in times.items() if t}, variance, spp)
 
 
