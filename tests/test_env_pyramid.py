@@ -457,19 +457,28 @@ def test_coarse_leaf_excess_is_zero_for_a_constant_map_and_black_map():
     assert coarse_leaf_excess(np.zeros((64, 64)), np.zeros((65, 65)), 4) == 0.0
 
 
-def test_the_leaf_records_are_the_same_computed_block_by_block(monkeypatch):
-    """They are packed a block of rows at a time (to keep the temporaries in the cache); a
-    block size that cuts the level in many pieces gives the bits of one block over the whole."""
-    image = random_latlong(16, 32, seed=5)
-    image[3, 7] = 300.0
-    luminance = (image @ np.array([0.212671, 0.715160, 0.072169])).astype(np.float32)
-    fine = EnvPyramid.from_latlong(image, max_depth=7, level_tolerance=0)
-    finest = fine.level_numpy(7).astype(np.float64)
-    corners = np.maximum(_corner_radiance(luminance, 128), 0)
-    blocks = finest.astype(np.float32).reshape(64, 2, 64, 2).transpose(0, 2, 1, 3).reshape(-1, 4)
-    whole = leaf_records(blocks, corners)
-    monkeypatch.setattr(pyramid_module, "_BLOCK_CELLS", 300)  # 2-3 rows of cells a block
-    assert np.array_equal(leaf_records(blocks, corners).view(np.uint32), whole.view(np.uint32))
+def test_the_leaf_records_are_the_children_then_the_corners_packed_as_bytes_of_their_largest():
+    """Against the layout written out on the host: record (I, J) holds level D's four children
+    of cell (I, J), then per child a little-endian word of its four corners (z0 phi0, z0 phi1,
+    z1 phi0, z1 phi1), each round(255 value / largest of the four), ties to even; a black leaf
+    packs zeros."""
+    rng = np.random.default_rng(8)
+    n = 64
+    corners = (rng.random((n + 1, n + 1)) * (rng.random((n + 1, n + 1)) > 0.2)).astype(np.float32)
+    corners[10:14, 20:24] = 0.0                       # black leaves
+    corners[30, 30:34] = np.float32(0.5 / 255)        # exact halves: ties round to even
+    corners[31, 30:34] = np.float32(1.0)
+    blocks = rng.random((n * n // 4, 4)).astype(np.float32)
+    records = leaf_records(blocks, corners)
+    leaf = [corners[:-1, :-1], corners[:-1, 1:], corners[1:, :-1], corners[1:, 1:]]
+    largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3]))
+    largest[largest == 0] = 1.0
+    words = np.zeros((n, n), dtype=np.uint32)
+    for k, value in enumerate(leaf):
+        words |= np.rint(value / largest * np.float32(255)).astype(np.uint32) << np.uint32(8 * k)
+    expected = words.reshape(n // 2, 2, n // 2, 2).transpose(0, 2, 1, 3).reshape(n // 2, n // 2, 4)
+    assert np.array_equal(records[..., 4:].view(np.uint32), expected)
+    assert np.array_equal(records[..., :4], blocks.reshape(n // 2, n // 2, 4))
 
 
 def test_coarse_leaf_excess_matches_a_float64_numpy_reference_at_every_level():

@@ -55,9 +55,6 @@ _BLOCK_COUNT_MASK = 0x55555555
 #: Texel rows / grid rows processed at once while resampling (bounds the
 #: float64 temporaries to a few times 8 * _CHUNK * max(W, 2^D) bytes).
 _CHUNK = 64
-#: Finest cells per block in :func:`leaf_records` (2 MB of
-#: float64: whole-level temporaries are slower to allocate and fault in than to compute).
-_BLOCK_CELLS = 1 << 18
 
 DIM_TOTAL = 1e-20
 """Integral (radiance x sr) below which a map is sampled as black. Its cells' float32
@@ -356,30 +353,34 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """
     m = corners.shape[0] // 2
     n = 2 * m
-    corners = np.asarray(corners, dtype=np.float32)
-    # Byte k of leaf (r, c)'s word is corner k: written as four uint8 planes of one
-    # (n, n, 4) array, read back as little-endian uint32 words. A block of rows at a
-    # time, on contiguous copies: numpy divides strided views several times slower.
-    packed = np.empty((n, n, 4), dtype=np.uint8)
-    step = max(1, _BLOCK_CELLS // max(n, 1))
-    for r0 in range(0, n, step):
-        block = corners[r0:min(r0 + step, n) + 1]
-        leaf = [np.ascontiguousarray(x) for x in (block[:-1, :n], block[:-1, 1:], block[1:, :n], block[1:, 1:])]
-        largest = np.maximum(np.maximum(leaf[0], leaf[1]), np.maximum(leaf[2], leaf[3]))
-        # value / largest first (at most 1), then the scale: 255 over a denormal largest
-        # would overflow float32. A black leaf (0 / 0) gets zeros.
-        largest[largest == 0] = 1.0
-        for k, value in enumerate(leaf):
-            np.divide(value, largest, out=value)
-            value *= np.float32(CORNER_LEVELS)
-            np.rint(value, out=value)
-            packed[r0:r0 + len(value), :, k] = value
-    words = packed.view("<u4")[..., 0]
-    records = np.empty((m, m, LEAF_RECORD_FLOATS), dtype=np.float32)
-    records[..., :4] = finest_blocks.reshape(m, m, 4)
-    # Leaf (2 I + a, 2 J + b) is child 2 a + b of record (I, J).
-    records[..., 4:].view(np.uint32)[...] = words.reshape(m, 2, m, 2).transpose(0, 2, 1, 3).reshape(m, m, 4)
-    return records
+    u32 = mi.UInt32
+    size = dr.opaque(u32, n)
+    # A lane per leaf (row, column) of level D; its record is cell (row / 2, column / 2) of
+    # level D - 1, where it is child 2 (row mod 2) + (column mod 2). The sizes are opaque:
+    # every depth packs with the same kernel.
+    leaf = dr.arange(u32, n * n)
+    row, column = leaf // size, leaf % size
+    # float32 corners in float64 lanes: a denormal corner stays itself (kernels may run with
+    # denormals flushed to zero, depending on what ran on the thread before), and each step
+    # is rounded to float32 as float32 arithmetic would round it.
+    corner = device_array(mi.Float64, corners)
+    first = row * (size + 1) + column
+    value = [dr.gather(mi.Float64, corner, index) for index in (first, first + 1, first + size + 1, first + size + 2)]
+    largest = dr.maximum(dr.maximum(value[0], value[1]), dr.maximum(value[2], value[3]))
+    # value / largest first (at most 1), then the scale: 255 over a denormal largest would
+    # overflow float32. A black leaf (0 / 0) gets zeros. Rounded to nearest, ties to even.
+    largest = dr.select(largest == 0, 1.0, largest)
+    word = dr.zeros(u32, n * n)
+    for k in range(4):
+        ratio = mi.Float(value[k] / largest)
+        word |= u32(dr.round(mi.Float(mi.Float64(ratio) * CORNER_LEVELS))) << (8 * k)
+    record = (row >> 1) * (size >> 1) + (column >> 1)
+    records = dr.zeros(mi.Float, m * m * LEAF_RECORD_FLOATS)
+    dr.scatter(records, dr.reinterpret_array(mi.Float, word),
+               record * LEAF_RECORD_FLOATS + 4 + ((row & 1) << 1) + (column & 1))
+    child = dr.arange(u32, m * m * 4)
+    dr.scatter(records, device_array(mi.Float, finest_blocks), (child >> 2) * LEAF_RECORD_FLOATS + (child & 3))
+    return np.asarray(records.numpy(), dtype=np.float32).reshape(m, m, LEAF_RECORD_FLOATS)
 
 
 class EnvmapError(ValueError):
