@@ -230,12 +230,11 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
     """
     n = finest.shape[0]
     parts = n >> level
-    finest = np.asarray(finest, dtype=np.float64)
-    total = float(finest.sum())
+    total = float(finest.sum(dtype=np.float64))
     if parts <= 1 or total <= 0:
         return 0.0
     m = n // parts
-    leaf_share = finest.reshape(m, parts, m, parts).sum(axis=(1, 3)) / total
+    leaf_share = finest.reshape(m, parts, m, parts).sum(axis=(1, 3), dtype=np.float64) / total
     leaf_corners = np.asarray(corners, dtype=np.float64)[::parts, ::parts]  # (m + 1, m + 1)
 
     u32 = mi.UInt32
@@ -267,7 +266,9 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
     # q = leaf share x the bilinear mass of the sub-cell; 0 only in a leaf of zero share,
     # whose cells' shares are 0 too.
     q = low_z * (v00 * low_phi + v01 * high_phi) + high_z * (v10 * low_phi + v11 * high_phi)
-    share = device_array(mi.Float64, finest) / total
+    # Read in its own precision (a float32 level is not copied to float64 on the host; a cell
+    # below float32's normal range would add under 1e-60 to the sum).
+    share = mi.Float64(device_array(mi.Float if finest.dtype == np.float32 else mi.Float64, finest)) / total
     second_moment = dr.sum(dr.select(q > 0, share * share / q, 0.0))
     return float(second_moment.numpy()[0]) - 1.0
 
@@ -330,6 +331,14 @@ CORNER_FLOOR = 0.025
 of their mean): :meth:`EnvPyramid.leaf_corners` and :func:`coarse_leaf_excess` alike."""
 
 
+def _float64_of_float32_bits(bits: mi.UInt32) -> mi.Float64:
+    """The float64 value of non-negative float32 ``bits``, exact for denormals too: a kernel
+    may run with denormals flushed to zero (depending on what ran on its thread before), and
+    a denormal corner must keep its shape (its mantissa times 2^-149, computed in float64)."""
+    mantissa = mi.Float64(bits & 0x7FFFFF) * 2.0**-149
+    return dr.select((bits >> 23) == 0, mantissa, mi.Float64(dr.reinterpret_array(mi.Float, bits)))
+
+
 def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """The finest level and the corner values in one array of records, float32
     (m, m, :data:`LEAF_RECORD_FLOATS`) for the m x m cells of level D - 1 (m = 2^(D-1)).
@@ -360,12 +369,12 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     # every depth packs with the same kernel.
     leaf = dr.arange(u32, n * n)
     row, column = leaf // size, leaf % size
-    # float32 corners in float64 lanes: a denormal corner stays itself (kernels may run with
-    # denormals flushed to zero, depending on what ran on the thread before), and each step
-    # is rounded to float32 as float32 arithmetic would round it.
-    corner = device_array(mi.Float64, corners)
+    # float32 corners in float64 lanes (exactly: :func:`_float64_of_float32_bits`), each step
+    # rounded to float32 as float32 arithmetic would round it.
+    corner = device_array(mi.UInt32, np.ascontiguousarray(corners, dtype=np.float32).view(np.uint32))
     first = row * (size + 1) + column
-    value = [dr.gather(mi.Float64, corner, index) for index in (first, first + 1, first + size + 1, first + size + 2)]
+    value = [_float64_of_float32_bits(dr.gather(u32, corner, index))
+             for index in (first, first + 1, first + size + 1, first + size + 2)]
     largest = dr.maximum(dr.maximum(value[0], value[1]), dr.maximum(value[2], value[3]))
     # value / largest first (at most 1), then the scale: 255 over a denormal largest would
     # overflow float32. A black leaf (0 / 0) gets zeros. Rounded to nearest, ties to even.
