@@ -84,10 +84,10 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
 
 def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directions: int, seed: int) -> dict:
     """``directions`` directions per shading point from the equal mixture of
-    :func:`frame_variances`, on the device; returns, on the host as (points,
-    directions) float64 arrays, the integrand per channel (``channels``), the mixture's
-    pdf (``q``) and each strategy's pdf, and whether each point has a product lobe
-    (``lobed``, per point)."""
+    :func:`frame_variances`, on the device; returns, as float64 device arrays of a block of
+    ``directions`` lanes per point, the integrand per channel (``channels``), the mixture's
+    pdf (``q``) and each strategy's pdf, whether each lane's point has a product lobe
+    (``lobed``), and ``directions``."""
     points = dr.width(si)
     lanes = points * directions
     index = dr.arange(mi.UInt32, lanes)
@@ -141,62 +141,70 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
     if plain and env.bsdf_share > 0:
         cosine = mi.Bool(proxy.cosine_only) if proxy is not None else mi.Bool(False)
         p_shared = dr.select(has_lobe & ~cosine, (1.0 - env.bsdf_share) * p_plain + env.bsdf_share * p_bsdf, p_plain)
-    dr.eval(channels, mixture, p_bsdf, p_env, p_plain_env, p_product, p_plain, p_shared, has_lobe)
+    def lane_values(x):  # float64 on every lane (a literal 0 included)
+        return mi.Float64(x) + dr.zeros(mi.Float64, lanes)
 
-    def per_point(x):
-        return np.broadcast_to(np.asarray(x.numpy(), dtype=np.float64), (lanes,)).reshape(points, directions)
-
-    return {"channels": [per_point(f) for f in channels], "q": per_point(mixture), "bsdf": per_point(p_bsdf),
-            "environment": per_point(p_env), "environment_only": per_point(p_plain_env),
-            "product": per_point(p_product), "product_only": per_point(p_plain),
-            "product_only_shared": per_point(p_shared),
-            "lobed": per_point(mi.Float(has_lobe))[:, 0] > 0}
+    samples = {"channels": [lane_values(f) for f in channels], "q": lane_values(mixture), "bsdf": lane_values(p_bsdf),
+               "environment": lane_values(p_env), "environment_only": lane_values(p_plain_env),
+               "product": lane_values(p_product), "product_only": lane_values(p_plain),
+               "product_only_shared": lane_values(p_shared), "lobed": mi.Bool(has_lobe) | dr.zeros(mi.Bool, lanes),
+               "directions": directions}
+    dr.eval(samples["channels"], *(v for k, v in samples.items() if k not in ("channels", "directions")))
+    return samples
 
 
 def strategy_variances(samples: dict, n_e: int, n_b: int, product: bool, plain: bool) -> np.ndarray:
     """Each strategy's variance per point (:func:`frame_variances`) from the
-    :func:`mixture_samples`, in float64 on the host.
+    :func:`mixture_samples`, in float64 on the device (a block of ``directions`` lanes per
+    point); returned on the host, (points, 6).
 
     Each strategy's variance is estimated as the mean of (Y - I)^2 p / q, Y = w f / p
     its sample's value and I its mean: centred, so that an estimator with a large
     mean and a small variance (a sun that the strategy follows closely) does not lose
     it to cancellation in E[Y^2] - I^2."""
-    q, p_bsdf, lobed = samples["q"], samples["bsdf"], samples["lobed"]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        channels = [np.where(q > 0, f, 0.0) for f in samples["channels"]]
-        inv_q = np.where(q > 0, 1.0 / q, 0.0)
+    q, p_bsdf, directions = samples["q"], samples["bsdf"], samples["directions"]
+    points = dr.width(q) // directions
+    point = dr.arange(mi.UInt32, dr.width(q)) // directions
+    lit = q > 0
+    channels = [dr.select(lit, f, 0.0) for f in samples["channels"]]
+    inv_q = dr.select(lit, 1.0 / q, 0.0)
 
-        def one_sample_variance(weighted, pdf):
-            """Variance of weighted(d) / pdf(d), d ~ pdf: (Y - I)^2 over the pdf's support."""
-            mean = np.mean(weighted * inv_q, axis=1, keepdims=True)
-            value = np.where(pdf > 0, weighted / pdf, 0.0)
-            return np.mean(np.where(pdf > 0, (value - mean) ** 2 * pdf * inv_q, 0.0), axis=1)
+    def point_mean(x):  # the mean of each point's block, on its lanes
+        return dr.gather(mi.Float64, dr.block_sum(x, directions) / directions, point)
 
-        def mis_variance(pdf):
-            frac_e, frac_b = sample_shares(n_e, n_b)
-            a2, b2 = (frac_e * pdf) ** 2, (frac_b * p_bsdf) ** 2
-            w = np.where(pdf > 0, a2 / (a2 + b2), 0.0) if n_b else np.where(pdf > 0, 1.0, 0.0)
-            w_b = np.where(p_bsdf > 0, 1.0 - w, 0.0)
+    def one_sample_variance(weighted, pdf):
+        """Variance of weighted(d) / pdf(d), d ~ pdf: (Y - I)^2 over the pdf's support (per point)."""
+        mean = point_mean(weighted * inv_q)
+        value = dr.select(pdf > 0, weighted / pdf, 0.0)
+        return dr.block_sum(dr.select(pdf > 0, dr.square(value - mean) * pdf * inv_q, 0.0), directions) / directions
 
-            def channel(f):
-                var = one_sample_variance(w * f, pdf) / n_e if n_e else 0.0
-                return var + (one_sample_variance(w_b * f, p_bsdf) / n_b if n_b else 0.0)
-            return np.mean([channel(f) for f in channels], axis=0)
+    def mis_variance(pdf):
+        frac_e, frac_b = sample_shares(n_e, n_b)
+        a2, b2 = dr.square(frac_e * pdf), dr.square(frac_b * p_bsdf)
+        w = dr.select(pdf > 0, a2 / (a2 + b2), 0.0) if n_b else dr.select(pdf > 0, 1.0, 0.0)
+        w_b = dr.select(p_bsdf > 0, 1.0 - w, 0.0)
 
-        def alone_variance(pdf):
-            return np.mean([one_sample_variance(f, pdf) for f in channels], axis=0) / (n_e + n_b)
+        def channel(f):
+            var = one_sample_variance(w * f, pdf) / n_e if n_e else 0.0
+            return var + (one_sample_variance(w_b * f, p_bsdf) / n_b if n_b else 0.0)
+        return sum(channel(f) for f in channels) / len(channels)
 
-        result = np.full((len(q), len(Strategy) + 1), np.nan)
-        result[:, Strategy.ENVIRONMENT] = mis_variance(samples["environment"])
-        result[:, Strategy.ENVIRONMENT_ONLY] = alone_variance(samples["environment_only"])
-        # A lane of a product material without a lobe (its back side, where the BSDF is
-        # black) samples the environment alone (ProductEnvironment.sample_environment).
-        if product:
-            result[:, Strategy.PRODUCT] = np.where(lobed, mis_variance(samples["product"]),
-                                                   result[:, Strategy.ENVIRONMENT])
-        if plain:
-            result[:, Strategy.PRODUCT_ONLY] = np.where(lobed, alone_variance(samples["product_only"]),
-                                                        result[:, Strategy.ENVIRONMENT_ONLY])
-            result[:, PRODUCT_ONLY_SHARED] = np.where(lobed, alone_variance(samples["product_only_shared"]),
-                                                      result[:, Strategy.ENVIRONMENT_ONLY])
+    def alone_variance(pdf):
+        return sum(one_sample_variance(f, pdf) for f in channels) / (len(channels) * (n_e + n_b))
+
+    columns = {Strategy.ENVIRONMENT: mis_variance(samples["environment"]),
+               Strategy.ENVIRONMENT_ONLY: alone_variance(samples["environment_only"])}
+    # A lane of a product material without a lobe (its back side, where the BSDF is
+    # black) samples the environment alone (ProductEnvironment.sample_environment).
+    lobed = dr.block_sum(mi.Float64(samples["lobed"]), directions) > 0
+    if product:
+        columns[Strategy.PRODUCT] = dr.select(lobed, mis_variance(samples["product"]), columns[Strategy.ENVIRONMENT])
+    if plain:
+        alone = columns[Strategy.ENVIRONMENT_ONLY]
+        columns[Strategy.PRODUCT_ONLY] = dr.select(lobed, alone_variance(samples["product_only"]), alone)
+        columns[PRODUCT_ONLY_SHARED] = dr.select(lobed, alone_variance(samples["product_only_shared"]), alone)
+    dr.eval(*columns.values())
+    result = np.full((points, len(Strategy) + 1), np.nan)
+    for column, values in columns.items():
+        result[:, column] = np.broadcast_to(np.asarray(values.numpy(), dtype=np.float64), (points,))
     return result
