@@ -156,7 +156,7 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
 def strategy_variances(samples: dict, n_e: int, n_b: int, product: bool, plain: bool) -> np.ndarray:
     """Each strategy's variance per point (:func:`frame_variances`) from the
     :func:`mixture_samples`, in float64 on the device (a block of ``directions`` lanes per
-    point); returned on the host, (points, 6).
+    point); returned on the host as (points, 5), the columns of :func:`frame_variances`.
 
     Each strategy's variance is estimated as the mean of (Y - I)^2 p / q, Y = w f / p
     its sample's value and I its mean: centred, so that an estimator with a large
