@@ -141,6 +141,7 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
     if plain and env.bsdf_share > 0:
         cosine = mi.Bool(proxy.cosine_only) if proxy is not None else mi.Bool(False)
         p_shared = dr.select(has_lobe & ~cosine, (1.0 - env.bsdf_share) * p_plain + env.bsdf_share * p_bsdf, p_plain)
+
     def lane_values(x):  # float64 on every lane (a literal 0 included)
         return mi.Float64(x) + dr.zeros(mi.Float64, lanes)
 
