@@ -326,3 +326,29 @@ def test_coefficients_trace_into_one_kernel_with_per_lane_bsdfs():
         dr.eval(coeffs, use_product)
         launches = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
     assert len(launches) == 1
+
+
+@pytest.mark.parametrize("bsdf", [{"type": "roughconductor", "alpha": 0.02}, {"type": "roughconductor", "alpha": 0.3},
+                                  {"type": "roughplastic", "alpha": 0.1}, {"type": "diffuse"}])
+def test_the_screened_coarse_search_finds_the_whole_grids_fit(bsdf):
+    """fit_two_lobe screens its coarse grid on a quarter of the nodes and weighs the best few on
+    all of them: at every view node it returns the fit of the whole grid weighed on all nodes,
+    then the same fine search (ties in the grid's order)."""
+    from mitsuba_shsampling.lobes import fit
+
+    cosines = np.linspace(0.02, 1.0, 6)
+    quadratures = [fit.mirror_quadrature(c) for c in cosines]
+    lobes = fit.tabulate_lobe(mi.load_dict(bsdf), cosines, np.stack([q.directions for q in quadratures]),
+                              fit.uv_positions(1)).mean(axis=2)
+    for g, quadrature in zip(lobes, quadratures):
+        energy = float(g @ quadrature.weights)
+        nodes = fit._FitNodes(g, quadrature, g > 0)
+        coarse = nodes.divergence(energy, fit.PHONG_EXPONENTS, fit.DIFFUSE_FRACTIONS)
+        i, j = np.unravel_index(np.argmin(coarse), coarse.shape)
+        step = fit.PHONG_EXPONENTS[1] / fit.PHONG_EXPONENTS[0]
+        fine_s = fit.PHONG_EXPONENTS[i] * step ** np.linspace(-1.0, 1.0, 7)
+        fine_t = np.unique(np.clip(fit.DIFFUSE_FRACTIONS[j] + np.linspace(-0.1, 0.1, 9), 0.0, 1.0))
+        fine = nodes.divergence(energy, fine_s, fine_t)
+        k, l = np.unravel_index(np.argmin(fine), fine.shape)
+        screened = fit.fit_two_lobe(g, quadrature)
+        assert (screened.exponent, screened.diffuse_weight) == (fine_s[k], energy * fine_t[l])
