@@ -19,14 +19,17 @@ one pass) and the median wall time of the next passes as ``mi.render`` runs them
 share of it (``integrator.plan``, timed before the first render: state, then
 plan) is given apart. Then, in the same process: a second integrator object with
 the same options (its first call - a pass), and a BSDF parameter change (the
-first call after ``params.update()`` - a pass). The table gives the set-up in
+first call after ``params.update()`` - a pass), and with ``--map-change FILE`` the map
+replaced by another of the same resolution (the envmap's ``data``, as an animation or a
+user trying maps does; the first call after the update - a pass). The table gives the set-up in
 seconds and in passes of ``direct``, and the render time from which the set-up is
 paid back at a given equal-time efficiency E (``--efficiency``): a method with
 set-up T and E times the other's efficiency gives the lower error from
 t = T E / (E - 1) of wall time on.
 
     python3 scripts/bench_setup.py [--scene material_studio] [--envmap FILE] [--res 480]
-                                   [--spp 16] [--methods direct sh_direct] [--json OUT.json]
+                                   [--spp 16] [--methods direct sh_direct] [--map-change FILE]
+                                   [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -48,9 +51,11 @@ STATES = {"cold": (False, False), "new map": (True, False), "warm": (True, True)
 """Cache state -> (Dr.Jit kernel cache filled, build cache filled)."""
 
 
-def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: str) -> dict:
+def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: str,
+              map_change: str | None = None) -> dict:
     """In this process: load the scene, plan (timed), render once (timed whole), then
-    :data:`NEXT_PASSES` more; then a second object, then a BSDF change."""
+    :data:`NEXT_PASSES` more; then a second object, a BSDF change, and with ``map_change``
+    the envmap's texels replaced by that file's."""
     import drjit as dr
     import mitsuba as mi
 
@@ -99,6 +104,21 @@ def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: s
         params.update()
         record["bsdf_change_s"] = timed_plan(integrator) + one_pass(integrator, 200) - pass_s
         record["bsdf_changed"] = key
+    if map_change:
+        from mitsuba_shsampling.scenes import scene_envmap
+
+        texels = mi.traverse(mi.load_dict({"type": "envmap", "filename": map_change}))["data"]
+        envmap = mi.traverse(scene_envmap(scene))
+        if dr.shape(texels) != dr.shape(envmap["data"]):
+            raise SystemExit(f"--map-change: {map_change} is {dr.shape(texels)}, the scene's map "
+                             f"{dr.shape(envmap['data'])}: give a map of the same resolution")
+        radiant = (lambda: integrator.scenes.get(scene).pyramid.radiant_total) if hasattr(integrator, "plan") else None
+        before = radiant() if radiant else None
+        envmap["data"] = texels
+        envmap.update()
+        record["map_change_s"] = timed_plan(integrator) + one_pass(integrator, 300) - pass_s
+        if radiant:  # the map the plan was made for: the new one's integral over the old one's
+            record["map_change_radiant_ratio"] = radiant() / before
     return record
 
 
@@ -108,6 +128,8 @@ def measure(args, method: str, kernels: str, builds: str) -> dict:
                "--scene", args.scene, "--res", str(args.res), "--spp", str(args.spp), "--methods", method]
     if args.envmap:
         command += ["--envmap", args.envmap]
+    if args.map_change:
+        command += ["--map-change", args.map_change]
     environment = {**os.environ, "DRJIT_CACHE_DIR": kernels, "SHSAMPLING_CACHE_DIR": builds}
     done = subprocess.run(command, env=environment, capture_output=True, text=True, check=False)
     if done.returncode != 0:
@@ -132,11 +154,13 @@ def main(argv=None) -> None:
                         help="equal-time efficiency over direct at which to state the payback time")
     parser.add_argument("--states", nargs="+", choices=list(STATES), default=list(STATES),
                         help="cache states to measure, in this order (default: all)")
+    parser.add_argument("--map-change", default=None,
+                        help="also time a change of the scene's map to this file's texels (same resolution)")
     parser.add_argument("--json", default="bench_setup.json")
     parser.add_argument(CHILD_FLAG, action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        print(json.dumps(run_child(args.scene, args.envmap, args.res, args.spp, args.methods[0])))
+        print(json.dumps(run_child(args.scene, args.envmap, args.res, args.spp, args.methods[0], args.map_change)))
         return
 
     rows = []
@@ -158,7 +182,8 @@ def main(argv=None) -> None:
     print(f"{args.scene} at {args.res} px wide, {args.spp} spp a pass"
           + (f", envmap {os.path.basename(args.envmap)}" if args.envmap else ""))
     print(f"{'method':<12}{'cache':<9}{'first call s':>13}{'pass s':>9}{'set-up s':>10}{'in direct passes':>18}"
-          f"{'state s':>9}{'plan s':>8}{'compile s':>11}{'2nd object s':>14}{'BSDF change s':>15}{'payback s':>11}")
+          f"{'state s':>9}{'plan s':>8}{'compile s':>11}{'2nd object s':>14}{'BSDF change s':>15}{'payback s':>11}"
+          + (f"{'map change s':>14}" if args.map_change else ""))
     nan = float("nan")
     for r in rows:
         in_passes = r["setup_s"] / direct_pass if direct_pass else nan
@@ -168,13 +193,15 @@ def main(argv=None) -> None:
         payback = f"{r['payback_s']:>11.1f}" if r["payback_s"] is not None else f"{'':>11}"
         print(f"{r['method']:<12}{r['cache']:<9}{r['first_call_s']:>13.2f}{r['pass_s']:>9.3f}{r['setup_s']:>10.2f}"
               f"{in_passes:>18.1f}{r.get('state_s', nan):>9.2f}{r.get('choice_s', nan):>8.2f}{r['compile_s']:>11.2f}"
-              f"{r['second_object_s']:>14.2f}{r.get('bsdf_change_s', nan):>15.2f}" + payback)
+              f"{r['second_object_s']:>14.2f}{r.get('bsdf_change_s', nan):>15.2f}" + payback
+              + (f"{r.get('map_change_s', nan):>14.2f}" if args.map_change else ""))
     print("state: the per-scene state (pyramid, lobe fits, tables); plan: the strategy plan; compile: the rest of "
           "the set-up (tracing and compiling the kernels)")
     print(f"payback: wall time from which the method's lower error at {args.efficiency}x direct's "
           "equal-time efficiency has paid for its extra set-up")
     from mitsuba_shsampling.benchmarks import write_json
-    write_json(args.json, {"scene": args.scene, "envmap": args.envmap, "res": args.res, "spp": args.spp,
+    write_json(args.json, {"scene": args.scene, "envmap": args.envmap, "map_change": args.map_change,
+                           "res": args.res, "spp": args.spp,
                            "efficiency": args.efficiency, "runs": rows})
 
 

@@ -32,8 +32,17 @@ def test_payback_is_where_the_remaining_time_at_e_times_the_efficiency_matches_t
 def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_plan_apart(tmp_path):
     out = tmp_path / "setup.json"
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    # Another map of the scene's map's resolution: its texels at half the radiance, a sun moved.
+    import mitsuba as mi
+    import numpy as np
+
+    mi.set_variant("scalar_rgb")
+    texels = np.array(mi.Bitmap(os.path.join(REPO, "mitsuba_shsampling", "scenes", "textures", "sunsky.exr")))
+    other = np.roll(texels * 0.5, texels.shape[1] // 4, axis=1).astype(np.float32)
+    mi.Bitmap(other).write(str(tmp_path / "other.exr"))
     proc = subprocess.run([sys.executable, SCRIPT, "--scene", "sphere_ggx010", "--res", "16", "--spp", "1",
-                           "--states", "cold", "warm", "--json", str(out)],
+                           "--states", "cold", "warm", "--map-change", str(tmp_path / "other.exr"),
+                           "--json", str(out)],
                           env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     runs = json.loads(out.read_text())["runs"]
@@ -43,7 +52,7 @@ def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_plan_apar
         assert r["first_call_s"] > 0 and r["pass_s"] > 0
         assert math.isclose(r["setup_s"], r["first_call_s"] - r["pass_s"])
         assert math.isclose(r["compile_s"], r["setup_s"] - r["plan_s"])
-        assert "second_object_s" in r and "bsdf_change_s" in r
+        assert "second_object_s" in r and "bsdf_change_s" in r and "map_change_s" in r
     # A first call costs more than a pass where it compiles or plans; `direct` with its kernels
     # cached has nothing to do first, and its two timings differ by noise alone.
     assert all(r["first_call_s"] > r["pass_s"] for r in runs if r["method"] == "sh_direct" or r["cache"] == "cold")
@@ -55,4 +64,6 @@ def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_plan_apar
     # Warm: the builds come from the disk cache, so the state costs less than its cold build.
     assert sh[1]["state_s"] < sh[0]["state_s"]
     assert all(r["payback_s"] is None for r in runs if r["method"] == "direct")
-    assert "payback" in proc.stdout
+    assert "payback" in proc.stdout and "map change" in proc.stdout
+    # The map change reaches the plugin's state: the pyramid is the new map's (half the radiance).
+    assert all(math.isclose(r["map_change_radiant_ratio"], 0.5, rel_tol=1e-3) for r in sh)
