@@ -235,7 +235,7 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
         return 0.0
     m = n // parts
     leaf_share = finest.reshape(m, parts, m, parts).sum(axis=(1, 3), dtype=np.float64) / total
-    leaf_corners = np.asarray(corners, dtype=np.float64)[::parts, ::parts]  # (m + 1, m + 1)
+    leaf_corners = np.asarray(corners[::parts, ::parts], dtype=np.float64)  # (m + 1, m + 1)
 
     u32 = mi.UInt32
     shift, size, sub_cells = dr.opaque(u32, parts.bit_length() - 1), dr.opaque(u32, n), dr.opaque(u32, parts)

@@ -255,10 +255,9 @@ def fit_two_lobe(g: np.ndarray, quadrature: LobeQuadrature) -> TwoLobeFit:
     finer search around the best pair. The coarse grid is screened on a quarter of the
     nodes (:data:`SCREEN_STRIDE`), and its :data:`SHORTLIST` best candidates there are
     weighed again on every node: the coarse pick is the grid's own wherever it is among
-    them. (On the 560 fits of the built-in scenes and ten rough conductors and plastics,
-    the fitted divergence was never higher than the whole grid's, and the fits took 0.53
-    s where they took 0.94; docs/MEASUREMENTS.md.) Returns all-zero weights when the lobe
-    carries no energy.
+    them. (The 560 fits of the built-in scenes and ten rough conductors and plastics are
+    the whole grid's bit for bit, in 0.53 s where they took 0.88; docs/MEASUREMENTS.md.)
+    Returns all-zero weights when the lobe carries no energy.
     """
     weights = quadrature.weights
     energy = float(g @ weights)
