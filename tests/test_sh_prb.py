@@ -13,8 +13,11 @@ high-spp ``path`` renders, and the replay pass against the primal pass it
 replays (a derivative that is exactly the image over the envmap's scale).
 """
 
+import math
+
 import drjit as dr
 import mitsuba as mi
+
 import numpy as np
 import pytest
 
@@ -141,6 +144,7 @@ def test_defaults_are_prbs():
     ("max_bands", 40, "must be in"),
     ("defensive_share", 0.0, "must be in (0, 1]"),
     ("strategy", "product_only", "must be one of"),  # the BSDF sample always runs, as in sh_path
+    ("rebuild_tolerance", -0.1, "must be >= 0"),
 ])
 def test_a_bad_parameter_raises_an_option_error_naming_sh_prb(name, value, requirement):
     with pytest.raises(OptionError, match=f"sh_prb: parameter '{name}' " + requirement.replace("(", r"\(")
@@ -154,7 +158,7 @@ def test_the_docstring_lists_every_parameter_and_shows_xml_and_dict_usage():
     from mitsuba_shsampling.integrators.sh_prb import SHPRBIntegrator
 
     doc = SHPRBIntegrator.__doc__
-    for name in ("max_depth", "rr_depth", "rebuild_interval", "strategy", "hide_emitters", "max_bands",
+    for name in ("max_depth", "rr_depth", "rebuild_interval", "rebuild_tolerance", "strategy", "hide_emitters", "max_bands",
                  "sh_depth", "proxy_depth", "mis_compensation", "defensive_share"):
         assert f"* - {name}" in doc
     assert '<integrator type="sh_prb">' in doc and "'type': 'sh_prb'" in doc
@@ -259,6 +263,50 @@ def test_every_render_sees_changed_parameters_with_rebuild_interval_1():
     roughen(scene, 0.4)
     mi.render(scene, integrator=integrator, spp=1)
     assert integrator.scenes.get(scene, stale_ok=True) is not before
+
+
+def test_parameters_that_moved_less_than_rebuild_tolerance_keep_the_state():
+    """The rebuild follows how far the parameters moved: 2 % keeps the state, at a render's
+    check and on plan() alike; once they have moved 25 % from where it was built (not from
+    the last check), it is rebuilt."""
+    scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
+    integrator = sh_prb(rebuild_interval=1, rebuild_tolerance=0.05)
+    mi.render(scene, integrator=integrator, spp=1)
+    built = integrator.scenes.get(scene, stale_ok=True)
+    for alpha in (0.204, 0.208):  # each within 5 % of the 0.2 it was built for
+        roughen(scene, alpha)
+        mi.render(scene, integrator=integrator, spp=1)
+        integrator.plan(scene)
+        assert integrator.scenes.get(scene, stale_ok=True) is built
+    assert integrator.scenes.motion() == pytest.approx(0.04, rel=1e-3)
+    roughen(scene, 0.25)
+    integrator.plan(scene)
+    assert integrator.scenes.get(scene, stale_ok=True) is not built
+    assert integrator.scenes.motion() == 0.0
+
+
+def test_rebuild_tolerance_0_rebuilds_on_any_change():
+    scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
+    integrator = sh_prb(rebuild_interval=1, rebuild_tolerance=0.0)
+    mi.render(scene, integrator=integrator, spp=1)
+    built = integrator.scenes.get(scene, stale_ok=True)
+    roughen(scene, 0.2001)
+    mi.render(scene, integrator=integrator, spp=1)
+    assert integrator.scenes.get(scene, stale_ok=True) is not built
+
+
+def test_the_motion_of_a_texture_is_its_texels_relative_change_and_a_new_transform_is_infinite():
+    scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
+    integrator = sh_prb()
+    integrator.plan(scene)
+    params = mi.traverse(scene)
+    texels = params["env.data"].numpy()
+    params["env.data"] = mi.TensorXf(texels * 1.1)
+    params.update()
+    assert integrator.scenes.motion() == pytest.approx(0.1, rel=1e-4)
+    params["env.to_world"] = mi.ScalarTransform4f().rotate([0, 0, 1], 30)
+    params.update()
+    assert integrator.scenes.motion() == math.inf
 
 
 def test_a_stale_state_still_renders_an_unbiased_image():

@@ -21,6 +21,7 @@ perturbed normal (:mod:`~mitsuba_shsampling.lobes.perturbed_frames`). With
 from __future__ import annotations
 
 import gc
+import math
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -616,6 +617,18 @@ class FrozenBeforePlanError(RuntimeError):
     """A ``dr.freeze`` recording reached an integrator that has no state for its scene yet."""
 
 
+def _flat_values(value) -> mi.Float | None:
+    """A parameter's values as one flat float array (tensors, colours, vectors, scalars),
+    None for what has no such form (a transform)."""
+    if dr.is_tensor_v(value):
+        return mi.Float(dr.detach(value.array))
+    if dr.is_array_v(value) and dr.depth_v(value) == 1:
+        return mi.Float(dr.detach(value))
+    if dr.is_array_v(value) and dr.depth_v(value) == 2 and not dr.is_matrix_v(value):
+        return mi.Float(dr.ravel(dr.detach(value)))
+    return None
+
+
 class SceneCache:
     """Builds a per-scene state with ``build(scene)`` (:class:`ProductEnvironment`,
     the oracle's state), and again whenever the scene's inputs change.
@@ -640,9 +653,10 @@ class SceneCache:
         self._key, self._held = None, []
         self._traversed: list[mi.SceneParameters] = []
 
-    def get(self, scene: mi.Scene, stale_ok: bool = False):
+    def get(self, scene: mi.Scene, stale_ok: bool = False, tolerance: float = 0.0):
         """The state ``build`` made for ``scene``, built again when its inputs changed;
-        with ``stale_ok`` only for another scene (the inputs are not even read).
+        with ``stale_ok`` only for another scene (the inputs are not even read); with a
+        ``tolerance`` > 0 only when they moved by more than it (:meth:`motion`).
 
         While ``dr.freeze`` records a function, the state made before is used as it is
         (a recording can neither read arrays on the host nor build), and a scene without
@@ -654,7 +668,7 @@ class SceneCache:
                     "the host, which a dr.freeze recording cannot do: call integrator.plan(scene) before "
                     "the frozen function's first call, and again outside it to refresh the state")
             return self._env
-        if self._scene is not scene or (not stale_ok and self._identity(self._inputs()) != self._key):
+        if self._scene is not scene or (not stale_ok and self._changed(tolerance)):
             # Objects of dropped scenes that only the cycle collector frees are still registered
             # with Dr.Jit, and its virtual calls trace them too: with two sunsky emitters that
             # aborted the process in LLVM ("invalid redefinition of function", tests/test_skies.py
@@ -667,11 +681,44 @@ class SceneCache:
             # Read after the build, which may have sanitised the envmap's data.
             inputs = self._inputs()
             self._key = self._identity(inputs)
-            # Detached references: a copy of a parameter whose gradient is enabled would be an
-            # AD edge from it, which a later forward-mode render must not traverse.
-            self._held = [dr.detach(value) if dr.is_diff_v(value) else type(value)(value)
-                          for value in inputs if dr.detail.collect_indices(value)]
+            # Detached references (None for host values): a copy of a parameter whose gradient is
+            # enabled would be an AD edge from it, which a later forward-mode render must not traverse.
+            self._held = [(dr.detach(value) if dr.is_diff_v(value) else type(value)(value))
+                          if dr.detail.collect_indices(value) else None for value in inputs]
         return self._env
+
+    def _changed(self, tolerance: float) -> bool:
+        """The inputs changed since the build (moved by more than ``tolerance``, where > 0)."""
+        inputs = self._inputs()
+        if self._identity(inputs) == self._key:
+            return False
+        return tolerance <= 0 or self.motion(inputs) > tolerance
+
+    def motion(self, inputs: list | None = None) -> float:
+        """How far the inputs moved since the state was built: the largest, over the
+        parameters that changed, of |x - x_built|_2 / |x_built|_2 (all values of one parameter
+        together: texels, a colour's channels). Infinite where a host value (a transform, a
+        flag) changed, a parameter changed shape or was zero. One reduction per changed
+        parameter, read back together."""
+        inputs = self._inputs() if inputs is None else inputs
+        sums = []
+        for value, key, held in zip(inputs, self._key, self._held):
+            if held is None or tuple(dr.detail.collect_indices(value)) == key:
+                if held is None and repr(value) != key:
+                    return math.inf
+                continue
+            new, old = _flat_values(value), _flat_values(held)
+            if new is None or old is None or dr.width(new) != dr.width(old):
+                return math.inf
+            sums += [dr.sum(dr.square(new - old)), dr.sum(dr.square(old))]
+        if not sums:
+            return 0.0
+        dr.eval(*sums)
+        worst = 0.0
+        for change, size in zip(sums[::2], sums[1::2]):
+            change, size = float(change[0]), float(size[0])
+            worst = max(worst, math.sqrt(change / size) if size > 0 else (math.inf if change > 0 else 0.0))
+        return worst
 
     @staticmethod
     def _traverse(scene: mi.Scene) -> list:

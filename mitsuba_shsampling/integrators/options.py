@@ -49,6 +49,11 @@ MIN_BANDS = DIFFUSE_BANDS
 # (scripts/optimise_prb.py; docs/MEASUREMENTS.md, "sh_prb's state rebuilds").
 DEFAULT_REBUILD_INTERVAL = 64
 
+# A state built for parameters within 5 % (relative L2, per parameter) of the current ones is
+# kept: chosen before measuring, as a change that moves a lobe's width or a map's texels by a
+# few per cent, which changes a sampling density's variance by about as little.
+DEFAULT_REBUILD_TOLERANCE = 0.05
+
 DEFAULT_SH_DEPTH = SH_DEPTH_WITH_PROXY
 
 # The BSDF's share in product_only's mixture: the environment's own share in the product's
@@ -373,11 +378,20 @@ class PRBOptions(PathOptions):
         "unbiased images and gradients (it is only a sampling density, MIS-combined with the "
         "BSDF sample that always runs), at some variance; a build of the material studio's lobe "
         "table takes seconds, many render passes' time."))
+    rebuild_tolerance: float = dataclasses.field(default=DEFAULT_REBUILD_TOLERANCE, metadata=_doc(
+        "How far the state's inputs must have moved for a rebuild: the largest relative change "
+        "|x - x_built| / |x_built| of one parameter (all its values together: a texture's texels, "
+        "a roughness) since the state was built. Where they moved less, the state is kept, at "
+        "the interval's end and on ``integrator.plan(scene)`` alike, and checked again at the "
+        "next render or plan: late in an optimisation, when the parameters settle, nothing is "
+        "rebuilt. A changed transform or flag always rebuilds. >= 0; 0: any change rebuilds."))
 
     def _check_ranges(self) -> None:
         super()._check_ranges()
         if self.rebuild_interval < 1:
             self._fail("rebuild_interval", "must be >= 1", self.rebuild_interval)
+        if not self.rebuild_tolerance >= 0.0:
+            self._fail("rebuild_tolerance", "must be >= 0", self.rebuild_tolerance)
 
 
 @dataclasses.dataclass(frozen=True)

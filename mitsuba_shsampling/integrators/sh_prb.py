@@ -57,10 +57,13 @@ class SHPRBIntegrator(RBIntegrator):
 
     The sampling state (the environment pyramid, the lobe table) is built from
     the scene's parameters before the first render and rebuilt when they
-    change, at most once every ``rebuild_interval`` renders: an optimisation
-    changes them at every step, and a build costs many passes' time on a
-    scene with many materials. In between, the state of slightly older
-    parameters keeps images and gradients unbiased.
+    change, at most once every ``rebuild_interval`` renders and only once
+    they moved by more than ``rebuild_tolerance``: an optimisation changes
+    them at every step, and a build costs many passes' time on a scene with
+    many materials. In between, the state of slightly older parameters keeps
+    images and gradients unbiased. A rebuild refits only the BSDFs whose
+    parameters changed and rebuilds the pyramid only for a changed map (the
+    builds are cached by content).
     """
 
     def __init__(self, props: mi.Properties):
@@ -98,7 +101,7 @@ class SHPRBIntegrator(RBIntegrator):
         """The host-side work before a pass (see ``sh_direct``'s), with the state rebuilt
         at most every ``rebuild_interval`` renders."""
         stale_ok = self._renders_since_build + 1 < self.options.rebuild_interval
-        state = self.scenes.get(scene, stale_ok=stale_ok)
+        state = self.scenes.get(scene, stale_ok=stale_ok, tolerance=self.options.rebuild_tolerance)
         self._renders_since_build = 0 if state is not self._state else self._renders_since_build + 1
         self._state = state
         def pilot_pass(pilot_spp, pilot_seed):
@@ -112,11 +115,15 @@ class SHPRBIntegrator(RBIntegrator):
     def plan(self, scene, sensor=0):
         """The plan for ``scene`` (see ``sh_direct``'s), made on the parameters as they are
         now: where a render rebuilds the state at most every ``rebuild_interval`` renders,
-        this call rebuilds it whenever the parameters changed since it was built. It is how
+        this call rebuilds it whenever the parameters moved by more than ``rebuild_tolerance``
+        since it was built. It is how
         a frozen optimisation step (``mitsuba_shsampling.freeze``), whose replays run no
         Python, refreshes its sampling state: call it outside the frozen function."""
         self._renders_since_build = self.options.rebuild_interval
-        return plan(self, scene, sensor)
+        made = plan(self, scene, sensor)
+        if not dr.flag(dr.JitFlag.FreezingScope):
+            dr.make_opaque(*self.frozen_inputs)
+        return made
 
     def choice(self, scene):
         """The strategy chosen for each material of ``scene`` (see ``sh_direct``)."""

@@ -1,0 +1,385 @@
+"""Three inverse problems, ``sh_prb`` against Mitsuba's ``prb`` with and without
+``mis_compensation``: loss and parameter error against wall-clock seconds.
+
+Tasks (each from a start away from the truth, Adam on the L2 image loss against a
+``path`` render of the truth, one differentiable render per step):
+
+- ``roughness_texture``: the material studio; the copper knot's GGX roughness (true 0.1,
+  start 0.3) and the ground's albedo texture (16 x 16 texels, start a flat grey).
+- ``envmap``: the gold GGX 0.1 sphere on its ground (``sphere_ggx010``), the camera not
+  seeing the map (``hide_emitters``); the map's texels (``potsdamer_platz`` averaged to
+  64 x 32; start: a flat grey of its mean).
+- ``materials``: the material studio; eight parameters of five materials (the knot's, the
+  gold and chrome balls', the plastic ball's and the bumped plastic's roughness, and the
+  two plastics' diffuse colours), each started away from its value.
+
+Every step is frozen (``mitsuba_shsampling.freeze``: ``dr.freeze`` of render, loss and
+backward, as Mitsuba's documentation shows for optimisation loops), recorded twice before
+the clock starts and replayed. ``sh_prb`` plans on the host every ``--plan-every`` steps
+(``integrator.plan(scene)``, inside its clock): it rebuilds its sampling state only where
+the parameters moved more than ``rebuild_tolerance``. Steps are interleaved (one step of
+each method in turn) and each method's clock counts only its own steps, until it has used
+``--seconds``. At each tenth of the budget, outside the clock, the parameters are scored:
+the image loss of a ``path`` render against the same render (same seed) of the true
+parameters, so that most of their noise cancels, and the task's parameter error.
+
+    python scripts/bench_inverse.py [--tasks ...] [--seeds 3] [--seconds 20] [--res 128]
+                                    [--json docs/bench_inverse.json] [--plot docs/bench_inverse.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import statistics
+import tempfile
+import time
+from typing import Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+import prb_studio as studio
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+MAP = os.path.join(HERE, "..", "tests", "data", "envmaps", "potsdamer_platz_1k.hdr")
+MAP_SIZE = (32, 64)
+"""Rows and columns of the ``envmap`` task's unknown map."""
+
+METHODS = {  # name -> (plugin, the envmap's own mis_compensation)
+    "sh_prb": ({"type": "sh_prb"}, False),
+    "prb": ({"type": "prb"}, False),
+    "prb + mis_compensation": ({"type": "prb"}, True),
+}
+SCORES = 10
+"""Scores per method and run (at each tenth of the clock budget)."""
+
+
+@dataclasses.dataclass
+class Task:
+    """One inverse problem: its scene, its unknowns (parameter keys), where they start,
+    their bounds and how far they are from the truth."""
+
+    name: str
+    load: Callable[[int, bool], mi.Scene]
+    """(width, mis_compensation) -> the scene with its true parameters."""
+    start: dict
+    """Key -> starting value."""
+    bounds: dict
+    """Key -> (low, high) after each step."""
+    lr: float
+    hide_emitters: bool = False
+    truth: dict = dataclasses.field(default_factory=dict)
+    weights: dict = dataclasses.field(default_factory=dict)
+    """Key -> per-value weights of the parameter error (where the image depends on it)."""
+
+    def parameter_error(self, params) -> float:
+        """The unknowns' relative error, the mean over keys of |x - x*|_w / |x*|_w (weighted
+        L2 over each key's values: a roughness, a colour, a texture's texels)."""
+        errors = []
+        for name, truth in self.truth.items():
+            value, w = np.asarray(params[key_in(params, name)].numpy(), np.float64).ravel(), self.weights[name]
+            errors.append(np.sqrt(np.sum(w * (value - truth) ** 2) / np.sum(w * truth ** 2)))
+        return float(np.mean(errors))
+
+
+def studio_task(name: str, start: dict, bounds: dict, lr: float) -> Task:
+    return Task(name, lambda res, misc: studio.load_studio(res, misc), start, bounds, lr)
+
+
+def envmap_scene(res: int, mis_compensation: bool) -> mi.Scene:
+    from mitsuba_shsampling.scenes import builtin_scenes, load_scene
+
+    return load_scene(builtin_scenes()["sphere_ggx010"], envmap=small_map(), res=res,
+                      mis_compensation=mis_compensation)
+
+
+def small_map() -> str:
+    """``potsdamer_platz`` averaged to :data:`MAP_SIZE` (an EXR in the temporary folder)."""
+    path = os.path.join(tempfile.gettempdir(), "bench_inverse_potsdamer_64x32.exr")
+    if not os.path.exists(path):
+        image = np.array(mi.Bitmap(MAP), dtype=np.float32)
+        rows, columns = MAP_SIZE
+        image = image.reshape(rows, image.shape[0] // rows, columns, image.shape[1] // columns, 3).mean(axis=(1, 3))
+        mi.Bitmap(image).write(path)
+    return path
+
+
+MATERIALS = {  # key -> start (true values: the studio's own)
+    studio.ROUGHNESS: 0.3, "gold_ball.bsdf.alpha.value": 0.4, "chrome_ball.bsdf.alpha.value": 0.3,
+    studio.PLASTIC_ROUGHNESS: 0.4, "bumped_plastic.nested_bsdf.alpha": 0.5,
+    "plastic_ball.bsdf.diffuse_reflectance.value": 0.5, "bumped_plastic.nested_bsdf.diffuse_reflectance.value": 0.5,
+}
+
+
+def tasks() -> dict:
+    colour = (0.0, 1.0)
+    return {
+        "roughness_texture": studio_task("roughness_texture", {studio.ROUGHNESS: 0.3, studio.TEXTURE: 0.35},
+                                         {studio.ROUGHNESS: (0.01, 1.0), studio.TEXTURE: colour}, 0.02),
+        "envmap": Task("envmap", envmap_scene, {"envmap": None}, {"envmap": (0.0, 1e4)}, 0.05, hide_emitters=True),
+        "materials": studio_task("materials", dict(MATERIALS),
+                                 {k: (0.01, 1.0) if "alpha" in k else colour for k in MATERIALS}, 0.02),
+    }
+
+
+def key_in(params, name: str) -> str:
+    """The parameter key of an unknown: ``envmap`` names the (unnamed) map's texels, whose
+    key holds an address that differs per scene."""
+    if name != "envmap":
+        return name
+    return next(k for k in params.keys() if k.endswith(".data")
+                and params.properties[k][2].class_name() == "EnvironmentMapEmitter")
+
+
+def starting_values(task: Task, params) -> dict:
+    """Unknown -> starting value; the map's: a flat grey of its mean."""
+    return {name: float(np.mean(params[key_in(params, name)].numpy())) if value is None else value
+            for name, value in task.start.items()}
+
+
+def set_start(params, start: dict) -> None:
+    for name, value in start.items():
+        key = key_in(params, name)
+        current = params[key]
+        if dr.is_tensor_v(current):
+            params[key] = type(current)(np.full(dr.shape(current), value, np.float32))
+        else:  # opaque, as an optimiser's values are: a literal would be recorded apart
+            params[key] = dr.opaque(type(current), value)
+    params.update()
+
+
+def sensitivity(scene, names, spp) -> dict:
+    """Unknown -> |d mean(image) / d value| per value, by ``prb`` at many samples per pixel."""
+    params = mi.traverse(scene)
+    keys = {name: key_in(params, name) for name in names}
+    for key in keys.values():
+        dr.enable_grad(params[key])
+    params.update()
+    image = mi.render(scene, params, integrator=mi.load_dict({"type": "prb"}), spp=64 * spp, seed=1, seed_grad=2)
+    dr.backward(dr.mean(image, axis=None))
+    weights = {}
+    for name, key in keys.items():
+        grad = np.abs(np.asarray(dr.grad(params[key]).numpy(), np.float64)).ravel()
+        # Scalars and colours weigh their values alike; textures and maps by where the image sees them.
+        weights[name] = grad if grad.size > 3 else np.ones_like(grad)
+        dr.disable_grad(params[key])
+    params.update()
+    return weights
+
+
+def frozen_step(spp: int):
+    import mitsuba_shsampling
+
+    def render_loss_backward(scene, params, integrator, seed, target):
+        image = mi.render(scene, params, integrator=integrator, spp=spp, seed=seed)
+        loss = dr.mean(dr.square(image - target), axis=None)
+        dr.backward(loss)
+        return loss
+
+    return mitsuba_shsampling.freeze(render_loss_backward)
+
+
+def integrator_for(plugin: dict, task: Task) -> mi.Integrator:
+    return mi.load_dict({**plugin, **({"hide_emitters": True} if task.hide_emitters else {})})
+
+
+def step(run: dict, task: Task, target, args, seed: int) -> None:
+    """One Adam step: the optimiser's values into the scene, for ``sh_prb`` a plan every
+    ``--plan-every`` steps, then the frozen render + loss + backward, the update and the bounds."""
+    params, opt, integrator = run["params"], run["opt"], run["integrator"]
+    params.update(opt)
+    if hasattr(integrator, "plan") and run["step"] % args.plan_every == 0:
+        integrator.plan(run["scene"])
+    run["frozen"](run["scene"], params, integrator, dr.opaque(mi.UInt32, seed), target)
+    opt.step()
+    for key, (low, high) in run["bounds"].items():
+        opt[key] = dr.clip(opt[key], low, high)
+    dr.eval(*(opt[key] for key in run["bounds"]))
+    run["step"] += 1
+
+
+def state_of(run):
+    scenes = getattr(run["integrator"], "scenes", None)
+    return scenes.get(run["scene"], stale_ok=True) if scenes is not None else None
+
+
+def new_run(task: Task, plugin: dict, misc: bool, target, args) -> dict:
+    scene = task.load(args.res, misc)
+    params = mi.traverse(scene)
+    start = starting_values(task, params)
+    bounds = {key_in(params, name): task.bounds[name] for name in start}
+    run = dict(scene=scene, params=params, integrator=integrator_for(plugin, task), frozen=frozen_step(args.spp),
+               start=start, bounds=bounds, step=0)
+
+    def reset():
+        set_start(params, start)
+        run["opt"] = mi.ad.Adam(lr=task.lr, params={key: params[key] for key in bounds})
+
+    # Two steps outside the clock: the first records, the second records again (Dr.Jit makes the
+    # literals that changed opaque); then back to the start.
+    reset()
+    for k in range(2):
+        step(run, task, target, args, seed=1_000_000 + k)
+    reset()
+    run.update(step=0, clock=0.0, step_times=[], history=[], builds=0, state=state_of(run))
+    return run
+
+
+def run_task(task: Task, seed: int, args) -> dict:
+    """One seed of one task: every method's history."""
+    truth_scene = task.load(args.res, False)
+    truth_params = mi.traverse(truth_scene)
+    names = list(task.start)
+    task.truth = {name: np.asarray(truth_params[key_in(truth_params, name)].numpy(), np.float64).ravel()
+                  for name in names}
+    task.weights = sensitivity(truth_scene, names, args.spp)
+    path = mi.load_dict({"type": "path", "max_depth": 6, "hide_emitters": task.hide_emitters})
+    target = mi.TensorXf(np.mean([np.array(mi.render(truth_scene, integrator=path, spp=1024, seed=k))
+                                  for k in range(args.target_spp // 1024)], axis=0))
+    scorer = task.load(args.res, False)
+    scorer_params = mi.traverse(scorer)
+
+    def scoring_render():
+        return np.array(mi.render(scorer, integrator=path, spp=args.eval_spp, seed=123))
+
+    reference = scoring_render()
+    runs = {name: new_run(task, plugin, misc, target, args) for name, (plugin, misc) in METHODS.items()}
+
+    def score(run):
+        for name in names:
+            scorer_params[key_in(scorer_params, name)] = dr.detach(run["params"][key_in(run["params"], name)])
+        scorer_params.update()
+        run["history"].append({"step": run["step"], "seconds": run["clock"],
+                               "loss": float(np.mean(np.square(scoring_render() - reference))),
+                               "parameter_error": task.parameter_error(run["params"])})
+
+    for run in runs.values():
+        score(run)
+    while any(run["clock"] < args.seconds for run in runs.values()):
+        for run in runs.values():
+            if run["clock"] >= args.seconds:
+                continue
+            start = time.perf_counter()
+            step(run, task, target, args, seed=2 * (seed * 100_000 + run["step"]))
+            run["step_times"].append(time.perf_counter() - start)
+            run["clock"] += run["step_times"][-1]
+            state = state_of(run)
+            run["builds"] += state is not run["state"]
+            run["state"] = state
+            if run["clock"] >= len(run["history"]) * args.seconds / SCORES:
+                score(run)
+    return {name: {"steps": run["step"], "seconds": run["clock"], "state_builds": run["builds"],
+                   "median_step_s": float(np.median(run["step_times"])),
+                   "mean_step_s": run["clock"] / run["step"], "history": run["history"]}
+            for name, run in runs.items()}
+
+
+def time_to_reach(history: list, loss: float) -> float | None:
+    """The first scored clock time at which the loss is <= ``loss`` (None: never)."""
+    return next((h["seconds"] for h in history if h["loss"] <= loss), None)
+
+
+def summarise(results: dict, seconds: float) -> dict:
+    """Per task and method: medians over the seeds of the step time (and its ratio to
+    ``prb``'s), the final loss and parameter error, and the time to reach each reference's
+    final loss as a share of the budget (a seed that never reaches it counts as > 1)."""
+    summary = {}
+    for task, seeds in results.items():
+        summary[task] = {}
+        for method in METHODS:
+            runs = [seeds[s][method] for s in seeds]
+            row = {"median_step_s": statistics.median(r["median_step_s"] for r in runs),
+                   "step_ratio_to_prb": statistics.median(r["median_step_s"] / seeds[s]["prb"]["median_step_s"]
+                                                          for s, r in zip(seeds, runs)),
+                   "mean_step_s": statistics.median(r["mean_step_s"] for r in runs),
+                   "state_builds": statistics.median(r["state_builds"] for r in runs),
+                   "final_loss": statistics.median(r["history"][-1]["loss"] for r in runs),
+                   "final_parameter_error": statistics.median(r["history"][-1]["parameter_error"] for r in runs)}
+            for reference in ("prb", "prb + mis_compensation"):
+                shares = []
+                for s, r in zip(seeds, runs):
+                    reached = time_to_reach(r["history"], seeds[s][reference]["history"][-1]["loss"])
+                    shares.append(reached / seconds if reached is not None else float("inf"))
+                row[f"time_to_{reference}_final_loss"] = shares
+            summary[task][method] = row
+    return summary
+
+
+def print_summary(summary: dict) -> None:
+    print(f"{'task':18s} {'method':24s} {'step s':>7s} {'x prb':>6s} {'mean s':>7s} {'builds':>6s} "
+          f"{'final loss':>10s} {'param err':>9s}  time to prb's / prb+misc's final loss (share of budget, per seed)")
+    for task, rows in summary.items():
+        for method, row in rows.items():
+            shares = lambda key: " ".join("never" if not np.isfinite(x) else f"{x:.2f}" for x in row[key])  # noqa: E731
+            print(f"{task:18s} {method:24s} {row['median_step_s']:7.3f} {row['step_ratio_to_prb']:6.2f} "
+                  f"{row['mean_step_s']:7.3f} {row['state_builds']:6.0f} {row['final_loss']:10.3g} "
+                  f"{row['final_parameter_error']:9.3f}  {shares('time_to_prb_final_loss')} / "
+                  f"{shares('time_to_prb + mis_compensation_final_loss')}")
+
+
+def plot(results: dict, path: str, args) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = dict(zip(METHODS, ("tab:red", "tab:blue", "tab:green")))
+    fig, axes = plt.subplots(len(results), 2, figsize=(11, 3.2 * len(results)), squeeze=False)
+    for row, (task, seeds) in zip(axes, results.items()):
+        for ax, key, title in zip(row, ("loss", "parameter_error"), ("image loss", "parameter error (relative)")):
+            for seed, runs in seeds.items():
+                for method, run in runs.items():
+                    ax.plot([h["seconds"] for h in run["history"]], [h[key] for h in run["history"]],
+                            color=colours[method], alpha=0.8, lw=1.2, label=method if seed == next(iter(seeds)) else None)
+            ax.set_yscale("log")
+            ax.set_title(f"{task}: {title}", fontsize=10)
+            ax.set_xlabel("wall-clock seconds (own steps, re-plans included)")
+            ax.grid(True, which="both", alpha=0.3)
+        row[0].legend(fontsize=8)
+    fig.suptitle(f"sh_prb against prb: three inverse problems, {len(next(iter(results.values())))} seeds each, "
+                 f"{args.res} px, {args.spp} spp a step, {args.seconds:.0f} s a method", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    print(f"wrote {path}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tasks", nargs="*", default=None, help="of: roughness_texture envmap materials (all)")
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seconds", type=float, default=20.0, help="clock budget of each method and seed")
+    parser.add_argument("--res", type=int, default=128)
+    parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a step")
+    parser.add_argument("--plan-every", type=int, default=16, help="sh_prb: steps between plan(scene) calls")
+    parser.add_argument("--eval-spp", type=int, default=64)
+    parser.add_argument("--target-spp", type=int, default=4096)
+    parser.add_argument("--json", default=None)
+    parser.add_argument("--plot", default=None)
+    args = parser.parse_args()
+
+    mi.set_variant("llvm_ad_rgb")
+    chosen = tasks()
+    names = args.tasks or list(chosen)
+    results = {name: {} for name in names}
+    for name in names:
+        for seed in range(args.seeds):
+            results[name][seed] = run_task(chosen[name], seed, args)
+            print(f"{name} seed {seed}: " + ", ".join(
+                f"{m} {r['steps']} steps, loss {r['history'][-1]['loss']:.3g}" for m, r in results[name][seed].items()),
+                flush=True)
+    summary = summarise(results, args.seconds)
+    print_summary(summary)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"settings": vars(args), "summary": summary, "runs": results}, f, indent=1)
+        print(f"wrote {args.json}")
+    if args.plot:
+        plot(results, args.plot, args)
+
+
+if __name__ == "__main__":
+    main()
