@@ -9,15 +9,16 @@ Tasks (each from a start away from the truth, Adam on the L2 image loss against 
 - ``envmap``: the gold GGX 0.1 sphere on its ground (``sphere_ggx010``), the camera not
   seeing the map (``hide_emitters``); the map's texels (``potsdamer_platz`` averaged to
   64 x 32; start: a flat grey of its mean).
-- ``materials``: the material studio; eight parameters of five materials (the knot's, the
+- ``materials``: the material studio; seven parameters of five materials (the knot's, the
   gold and chrome balls', the plastic ball's and the bumped plastic's roughness, and the
   two plastics' diffuse colours), each started away from its value.
 
 Every step is frozen (``mitsuba_shsampling.freeze``: ``dr.freeze`` of render, loss and
 backward, as Mitsuba's documentation shows for optimisation loops), recorded twice before
 the clock starts and replayed. ``sh_prb`` plans on the host every ``--plan-every`` steps
-(``integrator.plan(scene)``, inside its clock): it rebuilds its sampling state only where
-the parameters moved more than ``rebuild_tolerance``. Steps are interleaved (one step of
+(``integrator.plan(scene)``, inside its clock; one ``sh_prb`` run per value given, 16 and 64
+by default): it rebuilds its sampling state only where the parameters moved more than
+``rebuild_tolerance``. Steps are interleaved (one step of
 each method in turn) and each method's clock counts only its own steps, until it has used
 ``--seconds``. At each tenth of the budget, outside the clock, the parameters are scored:
 the image loss of a ``path`` render against the same render (same seed) of the true
@@ -49,11 +50,19 @@ MAP = os.path.join(HERE, "..", "tests", "data", "envmaps", "potsdamer_platz_1k.h
 MAP_SIZE = (32, 64)
 """Rows and columns of the ``envmap`` task's unknown map."""
 
-METHODS = {  # name -> (plugin, the envmap's own mis_compensation)
-    "sh_prb": ({"type": "sh_prb"}, False),
-    "prb": ({"type": "prb"}, False),
-    "prb + mis_compensation": ({"type": "prb"}, True),
+REFERENCES = {  # name -> (plugin, the envmap's own mis_compensation, plan every (None: no plan))
+    "prb": ({"type": "prb"}, False, None),
+    "prb + mis_compensation": ({"type": "prb"}, True, None),
 }
+
+
+def methods(plan_every: list) -> dict:
+    """``sh_prb`` once per ``--plan-every`` value (its ``rebuild_interval`` the same: for the
+    traced renders it is what the plan calls are for the frozen steps, and integrator objects with
+    the same options share one per-scene state, which holds one scene at a time), then Mitsuba's two."""
+    ours = {f"sh_prb (plan every {n})" if len(plan_every) > 1 else "sh_prb":
+            ({"type": "sh_prb", "rebuild_interval": n}, False, n) for n in plan_every}
+    return {**ours, **REFERENCES}
 SCORES = 10
 """Scores per method and run (at each tenth of the clock budget)."""
 
@@ -155,18 +164,21 @@ def set_start(params, start: dict) -> None:
 def sensitivity(scene, names, spp) -> dict:
     """Unknown -> |d mean(image) / d value| per value, by ``prb`` at many samples per pixel."""
     params = mi.traverse(scene)
-    keys = {name: key_in(params, name) for name in names}
-    for key in keys.values():
-        dr.enable_grad(params[key])
+    values = {}
+    for name in names:
+        key = key_in(params, name)
+        values[name] = type(params[key])(params[key])
+        dr.enable_grad(values[name])
+        params[key] = values[name]
     params.update()
     image = mi.render(scene, params, integrator=mi.load_dict({"type": "prb"}), spp=64 * spp, seed=1, seed_grad=2)
     dr.backward(dr.mean(image, axis=None))
     weights = {}
-    for name, key in keys.items():
-        grad = np.abs(np.asarray(dr.grad(params[key]).numpy(), np.float64)).ravel()
+    for name, value in values.items():
+        grad = np.abs(np.asarray(dr.grad(value).numpy(), np.float64)).ravel()
         # Scalars and colours weigh their values alike; textures and maps by where the image sees them.
         weights[name] = grad if grad.size > 3 else np.ones_like(grad)
-        dr.disable_grad(params[key])
+        params[key_in(params, name)] = dr.detach(value)
     params.update()
     return weights
 
@@ -192,7 +204,7 @@ def step(run: dict, task: Task, target, args, seed: int) -> None:
     ``--plan-every`` steps, then the frozen render + loss + backward, the update and the bounds."""
     params, opt, integrator = run["params"], run["opt"], run["integrator"]
     params.update(opt)
-    if hasattr(integrator, "plan") and run["step"] % args.plan_every == 0:
+    if run["plan_every"] is not None and run["step"] % run["plan_every"] == 0:
         integrator.plan(run["scene"])
     run["frozen"](run["scene"], params, integrator, dr.opaque(mi.UInt32, seed), target)
     opt.step()
@@ -207,13 +219,13 @@ def state_of(run):
     return scenes.get(run["scene"], stale_ok=True) if scenes is not None else None
 
 
-def new_run(task: Task, plugin: dict, misc: bool, target, args) -> dict:
+def new_run(task: Task, plugin: dict, misc: bool, plan_every: int | None, target, args) -> dict:
     scene = task.load(args.res, misc)
     params = mi.traverse(scene)
     start = starting_values(task, params)
     bounds = {key_in(params, name): task.bounds[name] for name in start}
     run = dict(scene=scene, params=params, integrator=integrator_for(plugin, task), frozen=frozen_step(args.spp),
-               start=start, bounds=bounds, step=0)
+               start=start, bounds=bounds, step=0, plan_every=plan_every)
 
     def reset():
         set_start(params, start)
@@ -247,7 +259,8 @@ def run_task(task: Task, seed: int, args) -> dict:
         return np.array(mi.render(scorer, integrator=path, spp=args.eval_spp, seed=123))
 
     reference = scoring_render()
-    runs = {name: new_run(task, plugin, misc, target, args) for name, (plugin, misc) in METHODS.items()}
+    runs = {name: new_run(task, plugin, misc, every, target, args)
+            for name, (plugin, misc, every) in methods(args.plan_every).items()}
 
     def score(run):
         for name in names:
@@ -273,6 +286,7 @@ def run_task(task: Task, seed: int, args) -> dict:
             if run["clock"] >= len(run["history"]) * args.seconds / SCORES:
                 score(run)
     return {name: {"steps": run["step"], "seconds": run["clock"], "state_builds": run["builds"],
+                   "recordings": run["frozen"].n_recordings,
                    "median_step_s": float(np.median(run["step_times"])),
                    "mean_step_s": run["clock"] / run["step"], "history": run["history"]}
             for name, run in runs.items()}
@@ -283,42 +297,55 @@ def time_to_reach(history: list, loss: float) -> float | None:
     return next((h["seconds"] for h in history if h["loss"] <= loss), None)
 
 
+def late_mean(history: list, key: str, seconds: float) -> float:
+    """The mean of ``key`` over the scores of the budget's second half: where the loss has
+    settled to the noise of the method's gradients, one score is one draw of that noise."""
+    return float(np.mean([h[key] for h in history if h["seconds"] >= seconds / 2] or [history[-1][key]]))
+
+
 def summarise(results: dict, seconds: float) -> dict:
     """Per task and method: medians over the seeds of the step time (and its ratio to
-    ``prb``'s), the final loss and parameter error, and the time to reach each reference's
-    final loss as a share of the budget (a seed that never reaches it counts as > 1)."""
+    ``prb``'s), the final loss and parameter error, their means over the second half
+    (:func:`late_mean`), and, per seed, the time to reach each reference's second-half
+    mean loss as a share of the budget (inf: never)."""
     summary = {}
     for task, seeds in results.items():
         summary[task] = {}
-        for method in METHODS:
+        for method in next(iter(seeds.values())):
             runs = [seeds[s][method] for s in seeds]
             row = {"median_step_s": statistics.median(r["median_step_s"] for r in runs),
                    "step_ratio_to_prb": statistics.median(r["median_step_s"] / seeds[s]["prb"]["median_step_s"]
                                                           for s, r in zip(seeds, runs)),
                    "mean_step_s": statistics.median(r["mean_step_s"] for r in runs),
                    "state_builds": statistics.median(r["state_builds"] for r in runs),
+                   "recordings": statistics.median(r.get("recordings", 0) for r in runs),
                    "final_loss": statistics.median(r["history"][-1]["loss"] for r in runs),
-                   "final_parameter_error": statistics.median(r["history"][-1]["parameter_error"] for r in runs)}
+                   "final_parameter_error": statistics.median(r["history"][-1]["parameter_error"] for r in runs),
+                   "late_loss": statistics.median(late_mean(r["history"], "loss", seconds) for r in runs),
+                   "late_parameter_error": statistics.median(late_mean(r["history"], "parameter_error", seconds)
+                                                             for r in runs)}
             for reference in ("prb", "prb + mis_compensation"):
                 shares = []
                 for s, r in zip(seeds, runs):
-                    reached = time_to_reach(r["history"], seeds[s][reference]["history"][-1]["loss"])
+                    reached = time_to_reach(r["history"], late_mean(seeds[s][reference]["history"], "loss", seconds))
                     shares.append(reached / seconds if reached is not None else float("inf"))
-                row[f"time_to_{reference}_final_loss"] = shares
+                row[f"time_to_{reference}_late_loss"] = shares
             summary[task][method] = row
     return summary
 
 
 def print_summary(summary: dict) -> None:
+    print("medians over the seeds; 'late': the mean over the budget's second half; time to reach: the "
+          "share of the budget at which a seed's loss first reaches the reference's late loss")
     print(f"{'task':18s} {'method':24s} {'step s':>7s} {'x prb':>6s} {'mean s':>7s} {'builds':>6s} "
-          f"{'final loss':>10s} {'param err':>9s}  time to prb's / prb+misc's final loss (share of budget, per seed)")
+          f"{'late loss':>10s} {'late error':>10s} {'final error':>11s}  time to prb's / prb+misc's late loss")
     for task, rows in summary.items():
         for method, row in rows.items():
             shares = lambda key: " ".join("never" if not np.isfinite(x) else f"{x:.2f}" for x in row[key])  # noqa: E731
             print(f"{task:18s} {method:24s} {row['median_step_s']:7.3f} {row['step_ratio_to_prb']:6.2f} "
-                  f"{row['mean_step_s']:7.3f} {row['state_builds']:6.0f} {row['final_loss']:10.3g} "
-                  f"{row['final_parameter_error']:9.3f}  {shares('time_to_prb_final_loss')} / "
-                  f"{shares('time_to_prb + mis_compensation_final_loss')}")
+                  f"{row['mean_step_s']:7.3f} {row['state_builds']:6.0f} {row['late_loss']:10.3g} "
+                  f"{row['late_parameter_error']:10.3f} {row['final_parameter_error']:11.3f}  "
+                  f"{shares('time_to_prb_late_loss')} / {shares('time_to_prb + mis_compensation_late_loss')}")
 
 
 def plot(results: dict, path: str, args) -> None:
@@ -327,7 +354,9 @@ def plot(results: dict, path: str, args) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colours = dict(zip(METHODS, ("tab:red", "tab:blue", "tab:green")))
+    ours = iter(("tab:red", "tab:orange", "tab:purple", "tab:brown"))
+    colours = {name: {"prb": "tab:blue", "prb + mis_compensation": "tab:green"}.get(name) or next(ours)
+               for name in next(iter(next(iter(results.values())).values()))}
     fig, axes = plt.subplots(len(results), 2, figsize=(11, 3.2 * len(results)), squeeze=False)
     for row, (task, seeds) in zip(axes, results.items()):
         for ax, key, title in zip(row, ("loss", "parameter_error"), ("image loss", "parameter error (relative)")):
@@ -354,7 +383,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=20.0, help="clock budget of each method and seed")
     parser.add_argument("--res", type=int, default=128)
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a step")
-    parser.add_argument("--plan-every", type=int, default=16, help="sh_prb: steps between plan(scene) calls")
+    parser.add_argument("--plan-every", type=int, nargs="+", default=[16, 64],
+                        help="sh_prb: steps between plan(scene) calls (one sh_prb run per value)")
     parser.add_argument("--eval-spp", type=int, default=64)
     parser.add_argument("--target-spp", type=int, default=4096)
     parser.add_argument("--json", default=None)
@@ -369,7 +399,8 @@ def main() -> None:
         for seed in range(args.seeds):
             results[name][seed] = run_task(chosen[name], seed, args)
             print(f"{name} seed {seed}: " + ", ".join(
-                f"{m} {r['steps']} steps, loss {r['history'][-1]['loss']:.3g}" for m, r in results[name][seed].items()),
+                f"{m} {r['steps']} steps ({r['state_builds']} builds, {r['recordings']} recordings), "
+                f"loss {r['history'][-1]['loss']:.3g}" for m, r in results[name][seed].items()),
                 flush=True)
     summary = summarise(results, args.seconds)
     print_summary(summary)

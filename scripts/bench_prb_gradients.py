@@ -1,7 +1,7 @@
 """Per-pass gradient variance of ``sh_prb`` against Mitsuba's ``prb`` at equal time.
 
 On the material studio (``prb_studio.py``: float ground albedo), at the optimisation's
-starting point (``optimise_prb.py``: knot roughness 0.3 instead of 0.1, grey ground) with
+starting point (``bench_inverse.py``'s ``roughness_texture``: knot roughness 0.3 instead of 0.1, grey ground) with
 the L2 loss against a ``path`` render of the true scene, every pass renders and
 backpropagates the loss with one integrator and reads the gradients of: the knot's GGX
 roughness, the plastic ball's GGX roughness, the ground's albedo texture, the envmap's

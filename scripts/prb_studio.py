@@ -1,5 +1,5 @@
 """The material studio set up for inverse rendering, shared by ``bench_prb_gradients.py`` and
-``optimise_prb.py`` (both import it from this folder).
+``bench_inverse.py`` (both import it from this folder).
 
 Bitmap textures load as 8-bit data, which has no derivatives: the ground's albedo is loaded
 as floats (the bitmap's ``format`` ``variant``) and resampled to a small texture, the one
@@ -68,7 +68,8 @@ def set_start(params: mi.SceneParameters) -> None:
 def render_target(res: int, spp: int = 4096) -> mi.TensorXf:
     """The image to match: the studio with its own parameters, rendered by ``path`` (in passes
     of at most 1024 spp). Its noise is part of what an optimisation fits: against a 512-spp
-    target every method's texture error was 0.05-0.07 after 40 s (``optimise_prb.py``), against
+    target every method's texture error was 0.05-0.07 after 40 s (the optimisation of ``bench_inverse.py``'s
+    ``roughness_texture`` task), against
     0.03-0.05 with 4096 spp."""
     scene = load_studio(res)
     path = mi.load_dict({"type": "path", "max_depth": 6})
