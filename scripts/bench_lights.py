@@ -11,7 +11,8 @@ count), the brightest pixel's variance, the efficiency 1 / (variance x time) and
 ratio to the best of Mitsuba's two, and the mean's relative difference to ``direct``'s
 (a bias check at this sample count, not a proof). ``sh_direct:each`` and
 ``sh_direct:one`` are the two ``emitter_selection`` designs (the same estimator where
-the map is the only emitter). The last column divides a case's ratio by the ``map``
+the map is the only emitter), ``sh_direct:auto`` the plan's pick between them (the default;
+the JSON gives what it weighed). The last column divides a case's ratio by the ``map``
 case's: how much of the map-only gain the added lights leave. With ``--family path``
 the methods are ``path`` (with and without ``mis_compensation``) and ``sh_path`` at
 ``--max-depth`` (the columns named after ``direct`` then mean ``path``).
@@ -67,7 +68,8 @@ def methods(args) -> dict:
         return {"direct": path, "direct_misc": path, "sh_path": {"type": "sh_path", "max_depth": args.max_depth}}
     return {"direct": {"type": "direct"}, "direct_misc": {"type": "direct"},
             "sh_direct:each": {"type": "sh_direct", "emitter_selection": "each"},
-            "sh_direct:one": {"type": "sh_direct", "emitter_selection": "one"}}
+            "sh_direct:one": {"type": "sh_direct", "emitter_selection": "one"},
+            "sh_direct:auto": {"type": "sh_direct"}}
 
 
 def scene_with(args, case: str, mis_compensation: bool):
@@ -113,6 +115,8 @@ def measure(args, case: str) -> dict:
     for name in [n for n in runs if n.startswith("sh_")]:
         plan = runs[name][1].choice(scenes[False])
         rows[name]["plan"] = {m.name: m.strategy.label for m in plan.materials} if plan else None
+        if plan is not None and plan.emitter_selection:
+            rows[name]["emitter_selection"] = plan.emitter_selection
     return rows
 
 

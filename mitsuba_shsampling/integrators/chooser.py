@@ -50,6 +50,7 @@ import mitsuba as mi
 import numpy as np
 
 from .costs import CostModel, cost_model
+from .emitter_selection import price_emitter_selection, selection_summary
 from .pilots import (LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate, cosine_pilot,
                      film_variance_factor, frozen_pilots, measure_pass_costs)
 from .quadrature import PRODUCT_ONLY_SHARED, camera_frames, frame_variances
@@ -143,12 +144,17 @@ class StrategyChoice:
     confirmation_time: dict = dataclasses.field(default_factory=dict)
     """``plan`` ``measure``, where :func:`confirm_by_timing` ran: ``confirm 0`` (the model's
     pick), ``confirm 1`` ... (its close rivals) -> pass time (s) of each, timed as a whole."""
+    emitter_selection: dict = dataclasses.field(default_factory=dict)
+    """``sh_direct``'s ``emitter_selection`` ``auto`` in a scene with other emitters: the
+    design chosen and what it was weighed with (:class:`~.emitter_selection.SelectionPrice`
+    as a dict); empty elsewhere."""
 
     def as_dict(self) -> dict:
         return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
                 "mode": self.mode, "setup_seconds": self.setup_seconds, "costs": dict(self.costs),
                 "cosine_tables": list(self.cosine_tables), "bsdf_shares": list(self.bsdf_shares),
                 "pass_time_s": dict(self.pass_time), "confirmation_time_s": dict(self.confirmation_time),
+                "emitter_selection": dict(self.emitter_selection),
                 "shared_variance": self.shared_variance,
                 "calibration": {s.label: f for s, f in (self.pilots.calibration if self.pilots else {}).items()},
                 "pilot_variance": {k: {"predicted": p, "measured": m} for k, (p, m) in self.pilot_variance.items()},
@@ -181,7 +187,8 @@ def summary_of(choice: dict) -> str:
     if environment and environment["measured"] > 0:
         shared = min(choice["shared_variance"] / environment["measured"], 1.0)
         head += f" ({shared:.0%} of the film's variance shared by every strategy)"
-    return f"{head}; " + ", ".join(parts)
+    selection = selection_summary(choice.get("emitter_selection", {}))
+    return f"{head}; " + ", ".join(parts) + (f"; {selection}" if selection else "")
 
 
 def rounded(x: float, digits: int = SIGNIFICANT_DIGITS) -> float:
@@ -300,6 +307,8 @@ class Predictions:
     """Id -> share of the film's camera samples that see it."""
     rest: float
     """The variance of the smooth materials outside the table (environment strategy)."""
+    smooth_share: float = 1.0
+    """Share of the film's camera samples that hit a smooth BSDF (they sample emitters)."""
 
     def best_environment_strategies(self, variance: dict) -> dict:
         """Each material's least-variance strategy among Mitsuba's own (the lean kernel's;
@@ -345,7 +354,7 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
     env.share_bsdf(shared)
     rest_rows = variances[~np.isin(keys, materials)]
     rest = float(np.sum(rest_rows[:, Strategy.ENVIRONMENT])) / total if len(rest_rows) else 0.0
-    return Predictions(materials, allowed, variance, share, rest)
+    return Predictions(materials, allowed, variance, share, rest, dr.width(si) / total if total else 0.0)
 
 
 def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool) -> dict:
@@ -376,12 +385,30 @@ def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool) -> dic
 
 def run_pilots(env, sensor: mi.Sensor, candidates: dict, render_pass: Callable, timed: bool) -> Pilots:
     """The pilot passes of ``candidates``, at least :data:`~.pilots.PILOT_LANES` camera samples each."""
-    film = sensor.film().crop_size()
-    spp = max(1, math.ceil(PILOT_LANES / (int(film[0]) * int(film[1]))))
+    spp = pilot_spp(sensor)
     if timed:
         return measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp)
     return measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp, repeats=PILOT_IMAGES,
                               timed=False)
+
+
+def pilot_spp(sensor: mi.Sensor) -> int:
+    """Samples per pixel of a pilot pass: at least :data:`~.pilots.PILOT_LANES` camera samples."""
+    film = sensor.film().crop_size()
+    return max(1, math.ceil(PILOT_LANES / (int(film[0]) * int(film[1]))))
+
+
+def priced_emitter_selection(env, sensor: mi.Sensor, p: Predictions, pass_time: float, costs: CostModel | None,
+                             pilots: Pilots | None, render_pass: Callable) -> dict:
+    """``emitter_selection`` ``auto`` where the scene has other emitters: both designs priced
+    for the plan as applied (:func:`~.emitter_selection.price_emitter_selection`), the better
+    one set; what was weighed, as a dict (empty where there is nothing to price)."""
+    if not (env.prices_emitter_selection and env.active and env.has_other_emitters):
+        return {}
+    lean_seconds = pilots.pass_time.get(LEAN) if costs is None and pilots is not None else None
+    model = costs if costs is not None else cost_model("direct")
+    return price_emitter_selection(env, render_pass, pilot_spp(sensor), pass_time, model.emitter_sample,
+                                   p.smooth_share, REQUIRED_GAIN, rounded, lean_seconds).as_dict()
 
 
 def calibrated(p: Predictions, pilots: Pilots, candidates: dict, film: mi.Film):
@@ -458,6 +485,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     alone_wanted = any(s == Strategy.ENVIRONMENT_ONLY for s in lean_choice.values())
     timed = costs is None
     choice, lean, gain, shared, fit, confirmed = lean_choice, not product_forced, 1.0, 0.0, {}, {}
+    planned_time = 1.0  # in lean passes
     if product_possible or alone_wanted:
         candidates = pilot_candidates(env, p, lean_choice, timed)
         fresh = pilots is None  # (pilots of an earlier choice: the scene's parameters changed)
@@ -485,7 +513,9 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
             pays = error_full * REQUIRED_GAIN < error_lean
             if (pays or product_forced) and any(s.uses_product for s in full_choice.values()):
                 choice, lean, gain = {**lean_choice, **full_choice}, False, error_lean / error_full
+        planned_time = (lean_time if lean else base) + sum(p.share[m] * extra[m][choice[m]] for m in p.materials)
     apply_choice(env, choice, lean)
+    selection = priced_emitter_selection(env, sensor, p, planned_time, None if timed else costs, pilots, render_pass)
     return StrategyChoice(
         materials=materials_report(env, p, choice, lean_choice,
                                    variance if product_possible or alone_wanted else p.variance, forced),
@@ -493,7 +523,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         lean=lean,
         seconds=time.perf_counter() - start, shared_variance=shared, pilot_variance=fit, pilots=pilots,
         cosine_tables=sorted(env.material_name(k) for k in env.lobes.tabled_ids) if env.cosine_tables else [],
-        bsdf_shares=shared_names(env), mode=MEASURE if timed else ESTIMATE, costs=costs.as_dict() if costs is not None else {})
+        bsdf_shares=shared_names(env), mode=MEASURE if timed else ESTIMATE, costs=costs.as_dict() if costs is not None else {},
+        emitter_selection=selection)
 
 
 def confirmation_timer(env, lean_choice: dict, render_pass: Callable, spp: int, confirmed: dict) -> Callable:
@@ -542,6 +573,9 @@ def stored_choice(env, stored: dict, mode: str = "file") -> StrategyChoice:
     env.share_bsdf({key for key in env.strategies.ids if env.material_name(key) in set(stored["bsdf_shares"])})
     apply_choice(env, choice, lean)
     plan = stored["plan"]
+    selection = plan.get("emitter_selection", {})
+    if selection and env.prices_emitter_selection:
+        env.emitter_selection = selection["design"]
     shown = {m["name"]: m for m in plan.get("materials", [])}
     materials = []
     for key, strategy in choice.items():
@@ -555,7 +589,8 @@ def stored_choice(env, stored: dict, mode: str = "file") -> StrategyChoice:
                           predicted_gain=plan.get("predicted_gain", 1.0), lean=lean, seconds=0.0,
                           shared_variance=plan.get("shared_variance", 0.0), pilot_variance=pilot_variance,
                           cosine_tables=sorted(stored["cosine_tables"]), bsdf_shares=shared_names(env), mode=mode,
-                          costs=plan.get("costs", {}))
+                          costs=plan.get("costs", {}),
+                          emitter_selection=selection if env.prices_emitter_selection else {})
 
 
 # ----------------------------------------------------------------- the integrators' planner

@@ -62,6 +62,16 @@ class CostModel:
     """Per unit film share on ``product_only``, SH walk, with the BSDF's share
     (``bsdf_defensive_share``): not timed by the pilots (their ``product_only`` runs each
     material as the plan weighs it), so the shipped figure."""
+    emitter_sample: float = 0.15
+    """Per unit film share of smooth lanes, ``sh_direct``'s sample of the other emitters
+    beside the environment's (``emitter_selection`` ``each`` against ``one``: a BSDF
+    evaluation and a shadow ray). Not timed by the calibration, whose studio has no other
+    emitters: the shipped figure, from ``scripts/bench_lights.py`` on the studio at 480 px, where
+    every camera ray hits a smooth BSDF (``each``'s pass over ``one``'s, less 1: 0.138 with a sun,
+    0.152 with two area lights; ``docs/bench_lights_studio_480px.json``). On the cheaper rays of
+    the preview scene it was 0.43 with a sun and -0.07 with two area lights
+    (``docs/bench_lights_preview_320px.json``): where that matters, ``plan`` ``measure`` times
+    the two designs in the scene."""
     source: str = "shipped"
     """Where the figures come from: ``shipped``, the calibration file's path, or
     ``measured in the scene``."""

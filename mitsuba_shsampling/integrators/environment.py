@@ -204,8 +204,7 @@ class ProductEnvironment(EnvironmentState):
         super().__init__(scene)
         self.scene = scene
         self.pyramid = self.lobes = self.warp = self.warp_plain = self.env_directions = self.env_plain = None
-        #: The evaluated environment's image and sun (:class:`~..envmap.evaluated.SkyComponents`;
-        #: None for an ``envmap``).
+        #: The evaluated environment's image and sun (:class:`~..envmap.evaluated.SkyComponents`; None: an ``envmap``).
         self.sky = None
         self.strategies = self.choice = None
         self.strategy_option = options.default_strategy
@@ -218,14 +217,15 @@ class ProductEnvironment(EnvironmentState):
         #: Registry id -> the scene's material (:mod:`~mitsuba_shsampling.scene_materials`).
         self._materials = {registry_id(m.bsdf): m for m in scene_materials(scene)}
         #: Some material has a Dirac component (which only a BSDF sample reaches).
-        self.has_dirac_materials = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Delta)
-                                       for m in self._materials.values())
+        self.has_dirac_materials = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Delta) for m in self._materials.values())
         self.carry_all = carry_all
         #: ``product_only``'s BSDF share (``sh_direct``'s ``bsdf_defensive_share``, else its default).
         self.bsdf_share = getattr(options, "bsdf_defensive_share", DEFAULT_BSDF_DEFENSIVE_SHARE) if carry_all else 0.0
         #: Trace the cosine tables' and the SH walk's code whatever the materials run (the
         #: chooser's pilot passes: :func:`~.chooser.measure_pass_costs`).
         self.pilot_walks = False
+        #: ``emitter_selection`` as traced, and whether the plan prices it (:mod:`.emitter_selection`).
+        self.emitter_selection, self.prices_emitter_selection = initial_emitter_selection(options)
         self.active = False
         if self.reason:
             if self.emitter is not None:  # an environment of another kind: say so once
@@ -599,6 +599,14 @@ class CarriedSlots(NamedTuple):
     is drawn per sample)."""
     bsdf_in_slot: float
     """The probability that a BSDF sample's slot draws from the BSDF."""
+
+
+def initial_emitter_selection(options) -> tuple[str, bool]:
+    """(design, priced): ``sh_direct``'s ``emitter_selection`` as the kernel first runs it
+    (``auto``: ``each`` until the plan prices both designs) and whether the plan prices them;
+    ``each`` for the integrators without the option."""
+    selection = getattr(options, "emitter_selection", "each")
+    return ("one" if selection == "one" else "each"), selection == "auto"
 
 
 class LaneLobe(NamedTuple):

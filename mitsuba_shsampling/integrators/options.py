@@ -46,7 +46,7 @@ MIN_BANDS = DIFFUSE_BANDS
 # sh_prb's state is rebuilt at most every 64 renders: a build of the material studio's lobe
 # table (3.5 s idle, 4-7 s on a busy machine) every 16 steps made an optimisation at 96 px and
 # 4 spp take 1.3-1.5x as long per step, while a state 64 steps old converged as well
-# (scripts/optimise_prb.py; docs/MEASUREMENTS.md, "sh_prb's state rebuilds").
+# (scripts/optimise_prb.py, since replaced by scripts/bench_inverse.py; docs/MEASUREMENTS.md, "sh_prb's state rebuilds").
 DEFAULT_REBUILD_INTERVAL = 64
 
 # A state built for parameters within 5 % (relative L2, per parameter) of the current ones is
@@ -281,13 +281,16 @@ class DirectOptions(ProductOptions):
         "Environment samples per shading point, drawn from the product of the BSDF lobe "
         "(in spherical harmonics, rotated per shading point) and the environment map")
     bsdf_samples: int = _bsdf_samples_field("")
-    emitter_selection: str = dataclasses.field(default="each", metadata=_doc(
+    emitter_selection: str = dataclasses.field(default="auto", metadata=_doc(
         "Where the scene has emitters besides the environment: ``each``, every emitter sample "
         "is one sample of the environment (the material's strategy) plus one of Mitsuba's "
-        "emitter sampling for the others, two shadow rays; or ``one``, an emitter drawn as "
+        "emitter sampling for the others, two shadow rays; ``one``, an emitter drawn as "
         "Mitsuba's ``direct`` draws it (uniformly, or by the emitters' ``sampling_weight``), "
         "then one sample of it, with the material's strategy where it is the environment: "
-        "one shadow ray. The same estimator in a scene lit by its environment alone."))
+        "one shadow ray; or ``auto``, the one of the two the plan prices better (each's "
+        "variance from pilot images, its time from the cost model; ``each`` where no plan is "
+        "made: every material's ``strategy`` set). The same estimator in a scene lit by its "
+        "environment alone."))
 
     bsdf_defensive_share: float = dataclasses.field(default=DEFAULT_BSDF_DEFENSIVE_SHARE, metadata=_doc(
         "Share b of the BSDF's own sampling in ``product_only``, which draws each sample from "
@@ -297,7 +300,7 @@ class DirectOptions(ProductOptions):
         "In [0, 1); 0 switches it off."))
 
     #: Values of ``emitter_selection``.
-    EMITTER_SELECTIONS: ClassVar[tuple] = ("each", "one")
+    EMITTER_SELECTIONS: ClassVar[tuple] = ("auto", "each", "one")
 
     def _check_ranges(self) -> None:
         super()._check_ranges()

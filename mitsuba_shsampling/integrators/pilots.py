@@ -179,13 +179,15 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
     pass of the product kernel costs several times its execution at pilot size). The
     per-scene state's arrays are inputs of the recording (:func:`~mitsuba_shsampling.frozen.held_inputs`),
     so a new table is read by the replay, and so are ``objects`` (the scene, sensor and
-    integrator that ``render`` uses). Where recording fails, the passes render traced."""
+    integrator that ``render`` uses), and so is ``env.emitter_selection`` (a Python string
+    that the trace reads: each value is its own recording). Where recording fails, the
+    passes render traced."""
     # The recording's closures form a reference cycle inside dr.freeze, which would keep
     # ``render`` (and through it the integrator, its state and the scene) alive until
     # Python's next collection: ``replay.release()`` drops both when the pilots are done.
     target = [render]
 
-    def one_pass(seed, spp, objects, inputs):
+    def one_pass(seed, spp, objects, inputs, emitter_selection):
         return target[0](spp, seed)
 
     frozen, failed = dr.freeze(one_pass), []
@@ -195,7 +197,7 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
             return render(spp, seed)
         with collector_paused():
             try:
-                return frozen(dr.opaque(mi.UInt32, seed), spp, objects, held_inputs(env))
+                return frozen(dr.opaque(mi.UInt32, seed), spp, objects, held_inputs(env), env.emitter_selection)
             except RuntimeError:  # e.g. an integrator whose arrays are out of reach: traced from now on
                 failed.append(True)
                 return render(spp, seed)

@@ -92,7 +92,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
         # ------ Environment: product (or environment-alone) sampling; other emitters: Mitsuba's ------
         # With other emitters and `emitter_selection` `one`, each sample draws one emitter first.
-        one_emitter = options.emitter_selection == "one" and env.active and env.has_other_emitters
+        one_emitter = env.emitter_selection == "one" and env.active and env.has_other_emitters
         # In product_only's lanes the BSDF samples' slots draw from the BSDF or the product
         # and every sample gets the balance weight over the slots (environment.CarriedSlots).
         draws_bsdf = carries_all is not False and env.draws_bsdf

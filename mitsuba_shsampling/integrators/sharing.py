@@ -104,7 +104,17 @@ def prepared(integrator, scene: mi.Scene, sensor=0) -> None:
     state = integrator.prepare_scene(scene, sensor)
     # Walked on every call, not once per state: a re-plan replaces arrays inside the same state
     # (the strategy table), and a recording must find the current ones.
-    integrator.frozen_inputs = held_inputs(state)
+    integrator.frozen_inputs = held_inputs(state) + [design_marker(state)]
+
+
+def design_marker(state) -> mi.UInt32:
+    """An array whose length says which emitter design (``sh_direct``'s ``emitter_selection``)
+    the state runs. The design is a Python string the trace reads, which a recording does not
+    see among its inputs (Dr.Jit keys an integrator's attributes by their arrays' layouts, not
+    by its plain Python values); an input of another length records anew."""
+    designs = ("each", "one")
+    design = getattr(state, "emitter_selection", "each")
+    return dr.zeros(mi.UInt32, 1 + designs.index(design)) + dr.opaque(mi.UInt32, 0)
 
 
 def planned_render(base) -> Callable:
