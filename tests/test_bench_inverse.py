@@ -58,6 +58,8 @@ def test_a_methods_late_loss_is_its_second_halfs_mean_and_the_time_to_reach_one_
     assert summary["sh_prb"]["late_loss"] == pytest.approx(0.15)
     assert summary["sh_prb"]["time_to_prb_late_loss"] == [2.0 / 3.0]  # 0.2 <= 0.3, first at 2 s
     assert summary["prb"]["time_to_prb_late_loss"] == [1.0]  # 0.4 > 0.3: only its last score
+    # Over the reference's own time to its late loss: 2 s against 3 s.
+    assert summary["sh_prb"]["time_ratio_to_prb"] == pytest.approx(2.0 / 3.0)
     assert summary["sh_prb"]["time_to_prb + mis_compensation_late_loss"] == [math.inf]
     assert summary["sh_prb"]["final_loss"] == 0.1
 
