@@ -255,14 +255,20 @@ def test_changed_parameters_rebuild_the_state_at_most_every_rebuild_interval_ren
     assert [states[k] is states[k - 1] for k in range(1, 7)] == [True, True, False, True, True, False]
 
 
-def test_every_render_sees_changed_parameters_with_rebuild_interval_1():
+@pytest.mark.parametrize("tolerance, alpha, rebuilt", [
+    (None, 0.4, True),       # the default tolerance: a roughness doubled
+    (0.0, 0.2001, True),     # no tolerance: any change
+    (0.05, 0.2001, False),   # 0.05 %: kept
+])
+def test_with_rebuild_interval_1_every_render_sees_parameters_that_moved_more_than_rebuild_tolerance(
+        tolerance, alpha, rebuilt):
     scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
-    integrator = sh_prb(rebuild_interval=1)
+    integrator = sh_prb(rebuild_interval=1, **({} if tolerance is None else {"rebuild_tolerance": tolerance}))
     mi.render(scene, integrator=integrator, spp=1)
     before = integrator.scenes.get(scene, stale_ok=True)
-    roughen(scene, 0.4)
+    roughen(scene, alpha)
     mi.render(scene, integrator=integrator, spp=1)
-    assert integrator.scenes.get(scene, stale_ok=True) is not before
+    assert (integrator.scenes.get(scene, stale_ok=True) is not before) == rebuilt
 
 
 def test_parameters_that_moved_less_than_rebuild_tolerance_keep_the_state():
@@ -283,16 +289,6 @@ def test_parameters_that_moved_less_than_rebuild_tolerance_keep_the_state():
     integrator.plan(scene)
     assert integrator.scenes.get(scene, stale_ok=True) is not built
     assert integrator.scenes.motion() == 0.0
-
-
-def test_rebuild_tolerance_0_rebuilds_on_any_change():
-    scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
-    integrator = sh_prb(rebuild_interval=1, rebuild_tolerance=0.0)
-    mi.render(scene, integrator=integrator, spp=1)
-    built = integrator.scenes.get(scene, stale_ok=True)
-    roughen(scene, 0.2001)
-    mi.render(scene, integrator=integrator, spp=1)
-    assert integrator.scenes.get(scene, stale_ok=True) is not built
 
 
 def test_the_motion_of_a_texture_is_its_texels_relative_change_and_a_new_transform_is_infinite():
