@@ -16,13 +16,15 @@ runs, as Dr.Jit looks up a compiled kernel by its source:
   kernels.
 
 ``SHSAMPLING_CACHE_DIR`` names another folder; ``SHSAMPLING_CACHE_DIR=off`` keeps
-builds in the process only. A file that cannot be read is built again and
+builds in the process only, and so does :func:`kept_in_process` for the builds made
+inside it (a state rebuilt after its scene's parameters changed). A file that cannot be read is built again and
 rewritten (a cache never decides a result); one that cannot be written is left
 out with no more than a warning.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -46,6 +48,25 @@ Record = dict
 _memory: "OrderedDict[str, Record]" = OrderedDict()
 #: Builds run in threads (the pyramids beside the lobe fits): the table is shared.
 _memory_lock = threading.Lock()
+#: Open :func:`kept_in_process` blocks (any thread's: the builds they start run in threads too).
+_in_process_only = 0
+
+
+@contextlib.contextmanager
+def kept_in_process():
+    """Builds made inside the block (their threads' included) are kept in this process and
+    not written to the disk cache; the disk is still read. For a state rebuilt because its
+    scene's parameters changed: an optimisation changes them at every step, its builds are
+    never met again, and each write cost ~50 ms of a 0.26 s rebuild (a 64 x 32 map's cosine
+    tables, ``scripts/bench_inverse.py``'s envmap task)."""
+    global _in_process_only
+    with _memory_lock:
+        _in_process_only += 1
+    try:
+        yield
+    finally:
+        with _memory_lock:
+            _in_process_only -= 1
 
 
 def cache_folder() -> str | None:
@@ -107,7 +128,7 @@ def cached_build(kind: str, key: str, build: Callable[[], Record]) -> Record:
     record = _read(path) if path else None
     if record is None:
         record = build()
-        if path:
+        if path and not _in_process_only:
             _write(path, record)
     with _memory_lock:
         _memory[name] = record

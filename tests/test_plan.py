@@ -352,6 +352,31 @@ def test_a_pyramid_read_from_the_disk_cache_equals_a_fresh_build(monkeypatch, tm
         assert np.array_equal(getattr(fresh, name).numpy(), getattr(cached, name).numpy(), equal_nan=True)
 
 
+def test_a_rebuild_after_a_parameter_change_keeps_its_builds_in_the_process_not_on_disk(monkeypatch, tmp_path):
+    """An optimisation changes the parameters at every step: those builds are never met again.
+    A first build of a scene (a new process's, a new integrator's) writes them as before."""
+    monkeypatch.setenv("SHSAMPLING_CACHE_DIR", str(tmp_path))
+    build_cache.clear_in_process()
+
+    def files():
+        return sorted(p.name for p in tmp_path.rglob("*.npz"))
+
+    scene = scene_of(("ggx",))
+    integrator = sh_direct()
+    before = integrator.scenes.get(scene)
+    first = files()
+    assert first
+    params = mi.traverse(scene)
+    params["ggx.bsdf.alpha.value"] = 0.35
+    params.update()
+    assert integrator.scenes.get(scene) is not before  # rebuilt, the BSDF refitted
+    assert files() == first
+    forget_shared()
+    build_cache.clear_in_process()
+    sh_direct().scenes.get(scene)
+    assert len(files()) > len(first)
+
+
 # ------------------------------------------------------------ in view
 
 def test_the_plan_is_one_info_line_with_the_set_up_time(capfd):

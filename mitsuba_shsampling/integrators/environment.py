@@ -20,6 +20,7 @@ perturbed normal (:mod:`~mitsuba_shsampling.lobes.perturbed_frames`). With
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import math
 import time
@@ -31,6 +32,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..build_cache import kept_in_process
 from ..envmap.emitter import EmitterDirections, compensated_copy
 from ..envmap.evaluated import EVALUATED_EMITTERS, is_evaluated, sky_components
 from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid
@@ -683,7 +685,9 @@ class SceneCache:
             # on 2 workers, 6 runs in 8 before this line, 0 in 11 after). A build is host work of
             # a second or more; a collection is milliseconds.
             gc.collect()
-            self._env = self._build(scene)
+            # A rebuild for changed parameters: its builds stay in the process (build_cache).
+            with kept_in_process() if self._scene is scene else contextlib.nullcontext():
+                self._env = self._build(scene)
             self._scene = scene
             self._traversed = self._traverse(scene)
             # Read after the build, which may have sanitised the envmap's data.
