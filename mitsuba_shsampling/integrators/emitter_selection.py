@@ -33,6 +33,7 @@ from ..timing import kernel_time
 from .pilots import PILOT_IMAGES, PILOT_REPEATS, PILOT_SEED, film_mean_pixel_variance
 
 DESIGNS = ("each", "one")
+"""The two designs, in the order a frozen pass's input marks them (:func:`~.sharing.design_marker`)."""
 
 
 @dataclasses.dataclass(frozen=True)

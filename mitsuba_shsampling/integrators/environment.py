@@ -710,9 +710,11 @@ class SceneCache:
         """How far the inputs moved since the state was built: the largest, over the
         parameters that changed, of |x - x_built|_2 / |x_built|_2 (all values of one parameter
         together: texels, a colour's channels). Infinite where a host value (a transform, a
-        flag) changed, a parameter changed shape or was zero. One reduction per changed
+        flag) changed, a parameter appeared, went, changed shape or was zero. One reduction per changed
         parameter, read back together."""
         inputs = self._inputs() if inputs is None else inputs
+        if len(inputs) != len(self._key):  # a parameter appeared or went
+            return math.inf
         sums = []
         for value, key, held in zip(inputs, self._key, self._held):
             if held is None or tuple(dr.detail.collect_indices(value)) == key:

@@ -37,7 +37,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     :monosp:`direct` combines its strategies. Other emitters (area, point,
     directional, ...) use Mitsuba's emitter sampling, drawn among themselves (the
     environment's share of Mitsuba's selection goes to its own sample), or with
-    ``emitter_selection`` ``one`` a single emitter per sample. Transmissive BSDFs have no product
+    ``emitter_selection`` ``one`` a single emitter per sample; with ``auto`` (the default)
+    the plan prices the two and runs the better. Transmissive BSDFs have no product
     lobe and sample the environment alone (MIS-compensated); ``bumpmap`` and
     ``normalmap`` are product-sampled with their nested BSDF's lobe about the
     perturbed normal; delta BSDFs

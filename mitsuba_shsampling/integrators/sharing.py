@@ -28,6 +28,7 @@ import mitsuba as mi
 from ..frozen import held_inputs
 
 from .chooser import StrategyChooser
+from .emitter_selection import DESIGNS
 from .environment import SceneCache
 
 class SharedPlanning:
@@ -112,9 +113,8 @@ def design_marker(state) -> mi.UInt32:
     the state runs. The design is a Python string the trace reads, which a recording does not
     see among its inputs (Dr.Jit keys an integrator's attributes by their arrays' layouts, not
     by its plain Python values); an input of another length records anew."""
-    designs = ("each", "one")
     design = getattr(state, "emitter_selection", "each")
-    return dr.zeros(mi.UInt32, 1 + designs.index(design)) + dr.opaque(mi.UInt32, 0)
+    return dr.zeros(mi.UInt32, 1 + DESIGNS.index(design)) + dr.opaque(mi.UInt32, 0)
 
 
 def planned_render(base) -> Callable:
