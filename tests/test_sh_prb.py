@@ -291,6 +291,21 @@ def test_parameters_that_moved_less_than_rebuild_tolerance_keep_the_state():
     assert integrator.scenes.motion() == 0.0
 
 
+def test_a_check_that_keeps_the_state_waits_another_rebuild_interval_before_the_next(monkeypatch):
+    """Reading the inputs back is a reduction over each changed parameter: every
+    ``rebuild_interval`` renders, not every render once the parameters settle."""
+    from mitsuba_shsampling.integrators.environment import SceneCache
+
+    scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
+    integrator = sh_prb(rebuild_interval=3, rebuild_tolerance=0.5)
+    checks, motion = [], SceneCache.motion
+    monkeypatch.setattr(SceneCache, "motion", lambda self, *a: checks.append(1) or motion(self, *a))
+    for k in range(10):
+        roughen(scene, 0.2 + 0.001 * k)  # small steps: the state is kept
+        mi.render(scene, integrator=integrator, spp=1, seed=k)
+    assert len(checks) == 3  # at renders 3, 6 and 9
+
+
 def test_the_motion_of_a_texture_is_its_texels_relative_change_and_a_new_transform_is_infinite():
     scene = make_scene(materials={"ggx": {"type": "roughconductor", "alpha": 0.2}})
     integrator = sh_prb()

@@ -89,7 +89,7 @@ class SHPRBIntegrator(RBIntegrator):
         self.shared = shared_planning(
             options, (), build, lambda: StrategyChooser(1, 1, "path", options.plan, options.plan_file))
         self.scenes, self.chooser = self.shared.scenes, self.shared.chooser
-        self._state, self._renders_since_build = None, 0
+        self._state, self._renders_since_check = None, 0
 
     # The per-scene state is built on the host before a pass is traced. A primal
     # render rebuilds it when its inputs changed (at most every rebuild_interval
@@ -98,11 +98,14 @@ class SHPRBIntegrator(RBIntegrator):
     # pass themselves, and the traced passes take it as it is.
 
     def prepare_scene(self, scene, sensor=0):
-        """The host-side work before a pass (see ``sh_direct``'s), with the state rebuilt
-        at most every ``rebuild_interval`` renders."""
-        stale_ok = self._renders_since_build + 1 < self.options.rebuild_interval
-        state = self.scenes.get(scene, stale_ok=stale_ok, tolerance=self.options.rebuild_tolerance)
-        self._renders_since_build = 0 if state is not self._state else self._renders_since_build + 1
+        """The host-side work before a pass (see ``sh_direct``'s), with the state's inputs
+        checked every ``rebuild_interval`` renders (rebuilt where they moved more than
+        ``rebuild_tolerance``). Counted from the last check, not the last build: a check that
+        keeps the state reads its inputs back (a reduction over each changed parameter, a
+        large map's included), which is not work for every pass."""
+        check = self._renders_since_check + 1 >= self.options.rebuild_interval
+        state = self.scenes.get(scene, stale_ok=not check, tolerance=self.options.rebuild_tolerance)
+        self._renders_since_check = 0 if check or state is not self._state else self._renders_since_check + 1
         self._state = state
         def pilot_pass(pilot_spp, pilot_seed):
             return super(SHPRBIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
@@ -119,7 +122,7 @@ class SHPRBIntegrator(RBIntegrator):
         since it was built. It is how
         a frozen optimisation step (``mitsuba_shsampling.freeze``), whose replays run no
         Python, refreshes its sampling state: call it outside the frozen function."""
-        self._renders_since_build = self.options.rebuild_interval
+        self._renders_since_check = self.options.rebuild_interval
         made = plan(self, scene, sensor)
         if not dr.flag(dr.JitFlag.FreezingScope):
             dr.make_opaque(*self.frozen_inputs)
