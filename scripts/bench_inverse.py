@@ -66,6 +66,8 @@ def methods(plan_every: list) -> dict:
     ours = {f"sh_prb (plan every {n})" if len(plan_every) > 1 else "sh_prb":
             ({"type": "sh_prb", "rebuild_interval": n}, False, n) for n in plan_every}
     return {**ours, **REFERENCES}
+
+
 SCORE_TIMES = (0.0, 1 / 80, 1 / 40, 1 / 20) + tuple(k / 10 for k in range(1, 11))
 """When each method is scored, as shares of the clock budget: each tenth, and three times
 in the first twentieth, where the loss falls fastest (at 20 s a budget the tenths alone
@@ -81,14 +83,15 @@ class Task:
     load: Callable[[int, bool], mi.Scene]
     """(width, mis_compensation) -> the scene with its true parameters."""
     start: dict
-    """Key -> starting value."""
+    """Unknown (a parameter key, or ``envmap``: :func:`key_in`) -> starting value (None: the
+    map's mean)."""
     bounds: dict
-    """Key -> (low, high) after each step."""
+    """Unknown -> (low, high) after each step."""
     lr: float
     hide_emitters: bool = False
     truth: dict = dataclasses.field(default_factory=dict)
     weights: dict = dataclasses.field(default_factory=dict)
-    """Key -> per-value weights of the parameter error (where the image depends on it)."""
+    """Unknown -> per-value weights of the parameter error (where the image depends on it)."""
 
     def parameter_error(self, params) -> float:
         """The unknowns' relative error, the mean over keys of |x - x*|_w / |x*|_w (weighted
@@ -113,10 +116,10 @@ def envmap_scene(res: int, mis_compensation: bool) -> mi.Scene:
 
 def small_map() -> str:
     """``potsdamer_platz`` averaged to :data:`MAP_SIZE` (an EXR in the temporary folder)."""
-    path = os.path.join(tempfile.gettempdir(), "bench_inverse_potsdamer_64x32.exr")
+    rows, columns = MAP_SIZE
+    path = os.path.join(tempfile.gettempdir(), f"bench_inverse_potsdamer_{columns}x{rows}.exr")
     if not os.path.exists(path):
         image = np.array(mi.Bitmap(MAP), dtype=np.float32)
-        rows, columns = MAP_SIZE
         image = image.reshape(rows, image.shape[0] // rows, columns, image.shape[1] // columns, 3).mean(axis=(1, 3))
         mi.Bitmap(image).write(path)
     return path
