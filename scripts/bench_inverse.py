@@ -254,7 +254,7 @@ def worker(conn, task_name: str, method: tuple, target: np.ndarray, seed: int, a
 
     Why a process each: a frozen function reads every registered Mitsuba object as an input,
     so in one process each method's parameter updates (and the scorer's) made the others'
-    steps record again (9-13 recordings a run with three methods, 20-34 with four; alone, `prb`
+    steps record again (6-13 recordings a run with three methods, 20-34 with four; alone, `prb`
     records twice), a cost no user with one optimisation pays. Commands: ``step`` (reply: its seconds, and whether the
     sampling state was rebuilt), ``params`` (reply: name -> values), ``done`` (reply: the
     frozen function's recordings)."""
