@@ -119,9 +119,10 @@ class SHPRBIntegrator(RBIntegrator):
         """The plan for ``scene`` (see ``sh_direct``'s), made on the parameters as they are
         now: where a render rebuilds the state at most every ``rebuild_interval`` renders,
         this call rebuilds it whenever the parameters moved by more than ``rebuild_tolerance``
-        since it was built. It is how
-        a frozen optimisation step (``mitsuba_shsampling.freeze``), whose replays run no
-        Python, refreshes its sampling state: call it outside the frozen function."""
+        since it was built. It is how a frozen optimisation step (``mitsuba_shsampling.freeze``),
+        whose replays run no Python, refreshes its sampling state: call it outside the frozen
+        function. The state's arrays are made opaque: a rebuilt state's new values are then
+        inputs of the same recording, not literals of a new one."""
         self._renders_since_check = self.options.rebuild_interval
         made = plan(self, scene, sensor)
         if not dr.flag(dr.JitFlag.FreezingScope):

@@ -18,6 +18,7 @@ pyramid, the lobe fits, the cosine tables) are kept by their content instead
 
 from __future__ import annotations
 
+import functools
 import gc
 import weakref
 from typing import Callable
@@ -113,8 +114,14 @@ def design_marker(state) -> mi.UInt32:
     the state runs. The design is a Python string the trace reads, which a recording does not
     see among its inputs (Dr.Jit keys an integrator's attributes by their arrays' layouts, not
     by its plain Python values); an input of another length records anew."""
-    design = getattr(state, "emitter_selection", "each")
-    return dr.zeros(mi.UInt32, 1 + DESIGNS.index(design)) + dr.opaque(mi.UInt32, 0)
+    return _marker(mi.variant(), getattr(state, "emitter_selection", "each"))
+
+
+@functools.lru_cache(maxsize=None)
+def _marker(variant: str, design: str) -> mi.UInt32:
+    """One read-only marker per variant and design, made once (:func:`prepared` runs before
+    every pass)."""
+    return dr.opaque(mi.UInt32, 0, 1 + DESIGNS.index(design))
 
 
 def planned_render(base) -> Callable:
