@@ -140,6 +140,15 @@ def test_constant_map_integrates_to_four_pi_radiance():
     np.testing.assert_allclose(finest, 6.0 * 4 * np.pi / finest.size, rtol=1e-6)
 
 
+def test_a_constant_map_stays_uncompensated_whatever_its_cells_rounding():
+    """Compensation would leave a constant map black: its cells differ from their mean by
+    rounding alone, and that residue is not taken for a target."""
+    for height, width in ((16, 32), (64, 128), (256, 512)):
+        pyramid = EnvPyramid(envmap_emitter(constant_latlong(height, width, 0.7)), mis_compensation=True)
+        assert not pyramid.mis_compensation
+        assert pyramid.total == pytest.approx(4 * np.pi * 0.7, rel=1e-7)  # 0.7 as float32
+
+
 def test_cells_match_emitter_integral_over_cell_including_poles_and_seam(case):
     pyramid, emitter = case["pyramid"], case["emitter"]
     rng = np.random.default_rng(1)
@@ -432,7 +441,7 @@ def test_coarse_leaf_excess_is_the_second_moment_the_coarse_walk_adds_on_the_fin
     coarse = EnvPyramid.from_latlong(image, max_depth=5, level_tolerance=0)
     finest = fine.level_numpy(7).astype(np.float64)
     luminance = image @ np.array([0.212671, 0.715160, 0.072169])
-    corners = np.maximum(_corner_radiance(luminance.astype(np.float32), 128), 0)
+    corners = _corner_radiance(luminance.astype(np.float32), 128).numpy().reshape(129, 129)
     predicted = coarse_leaf_excess(finest, corners, 5)
 
     points = 6  # midpoint rule inside each fine cell (the pdf is bilinear there, up to the grid's z)
@@ -488,7 +497,7 @@ def test_coarse_leaf_excess_matches_a_float64_numpy_reference_at_every_level():
     image[9, 20] = 250.0
     luminance = (image @ np.array([0.212671, 0.715160, 0.072169])).astype(np.float32)
     finest = EnvPyramid.from_latlong(image, max_depth=7, level_tolerance=0).level_numpy(7).astype(np.float64)
-    corners = np.maximum(_corner_radiance(luminance, 128), 0).astype(np.float64)
+    corners = _corner_radiance(luminance, 128).numpy().reshape(129, 129).astype(np.float64)
     t = finest / finest.sum()
     for level in (6, 5, 3):
         parts, m = 128 >> level, 1 << level

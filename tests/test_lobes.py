@@ -328,27 +328,50 @@ def test_coefficients_trace_into_one_kernel_with_per_lane_bsdfs():
     assert len(launches) == 1
 
 
+def whole_grid_fit(g, quadrature, fit):
+    """The fit written out in numpy: the whole coarse grid weighed on every node where the lobe
+    is positive (float32 terms, as the search computes them), then the fine search around
+    its pick; (exponent, diffuse fraction, energy)."""
+    energy = float(g @ quadrature.weights)
+    keep = g > 0
+    g32, w32 = g[keep].astype(np.float32), quadrature.weights[keep].astype(np.float32)
+    diffuse = (np.maximum(quadrature.directions[keep, 2], 0.0) / np.pi).astype(np.float32)
+
+    def divergences(exponents, fractions):
+        glossy = fit.phong_lobe(quadrature.cos_to_axis[keep][None, :], exponents[:, None]).astype(np.float32)
+        out = np.empty((len(exponents), len(fractions)))
+        for j, t in enumerate(fractions):
+            proxy = np.float32(energy * (1 - t)) * glossy + np.float32(energy * t) * diffuse
+            out[:, j] = (g32 * g32 / (0.5 * (proxy + g32)) * w32).astype(np.float64).sum(axis=-1) / energy - 1.0
+        return out
+
+    coarse = divergences(fit.PHONG_EXPONENTS, fit.DIFFUSE_FRACTIONS)
+    i, j = np.unravel_index(np.argmin(coarse), coarse.shape)
+    fine_s = fit.FINE_EXPONENTS[i]
+    fine_t = np.unique(np.clip(fit.DIFFUSE_FRACTIONS[j] + np.linspace(-0.1, 0.1, 9), 0.0, 1.0))
+    fine = divergences(fine_s, fine_t)
+    k, l = np.unravel_index(np.argmin(fine), fine.shape)
+    return fine_s[k], fine_t[l], energy
+
+
 @pytest.mark.parametrize("bsdf", [{"type": "roughconductor", "alpha": 0.02}, {"type": "roughconductor", "alpha": 0.3},
                                   {"type": "roughplastic", "alpha": 0.1}, {"type": "diffuse"}])
-def test_the_screened_coarse_search_finds_the_whole_grids_fit(bsdf):
-    """fit_two_lobe screens its coarse grid on a quarter of the nodes and weighs the best few on
-    all of them: at every view node it returns the fit of the whole grid weighed on all nodes,
-    then the same fine search (ties in the grid's order)."""
+def test_the_fit_kernels_screened_search_finds_the_whole_grids_fit(bsdf):
+    """fit_two_lobes (one kernel a stage, every view node at once) screens its coarse grid on a
+    quarter of the nodes and weighs the best few on all of them: at every view node it returns
+    the fit of the whole grid weighed on all nodes, then the same fine search. (Where the lobe
+    has no glossy part every exponent fits alike, and only the weights are compared.)"""
     from mitsuba_shsampling.lobes import fit
 
     cosines = np.linspace(0.02, 1.0, 6)
     quadratures = [fit.mirror_quadrature(c) for c in cosines]
-    lobes = fit.tabulate_lobe(mi.load_dict(bsdf), cosines, np.stack([q.directions for q in quadratures]),
+    bsdf = mi.load_dict(bsdf)
+    lobes = fit.tabulate_lobe(bsdf, cosines, np.stack([q.directions for q in quadratures]),
                               fit.uv_positions(1)).mean(axis=2)
-    for g, quadrature in zip(lobes, quadratures):
-        energy = float(g @ quadrature.weights)
-        nodes = fit._FitNodes(g, quadrature, g > 0)
-        coarse = nodes.divergence(energy, fit.PHONG_EXPONENTS, fit.DIFFUSE_FRACTIONS)
-        i, j = np.unravel_index(np.argmin(coarse), coarse.shape)
-        step = fit.PHONG_EXPONENTS[1] / fit.PHONG_EXPONENTS[0]
-        fine_s = fit.PHONG_EXPONENTS[i] * step ** np.linspace(-1.0, 1.0, 7)
-        fine_t = np.unique(np.clip(fit.DIFFUSE_FRACTIONS[j] + np.linspace(-0.1, 0.1, 9), 0.0, 1.0))
-        fine = nodes.divergence(energy, fine_s, fine_t)
-        k, l = np.unravel_index(np.argmin(fine), fine.shape)
-        screened = fit.fit_two_lobe(g, quadrature)
-        assert (screened.exponent, screened.diffuse_weight) == (fine_s[k], energy * fine_t[l])
+    fits = fit.fit_two_lobes(fit.mean_mirror_lobe(bsdf, cosines, fit.uv_positions(1)), quadratures, np.arange(6))
+    for g, quadrature, found in zip(lobes, quadratures, fits):
+        exponent, fraction, energy = whole_grid_fit(g, quadrature, fit)
+        assert found.diffuse_weight == pytest.approx(energy * fraction, rel=1e-9, abs=1e-12)
+        assert found.glossy_weight == pytest.approx(energy * (1 - fraction), rel=1e-9, abs=1e-12)
+        if fraction < 1.0:
+            assert found.exponent == exponent

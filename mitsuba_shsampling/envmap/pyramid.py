@@ -25,6 +25,7 @@ features (a sun of one texel) can therefore not be missed at any depth.
 
 from __future__ import annotations
 
+import math
 import numbers
 import threading
 import time
@@ -86,6 +87,10 @@ memory": the product warp 28 % faster at depth 10 than at 11, a scene's pass 3-7
 estimator's variance grows by the excess times ``S / (S - 1)`` (S its relative second
 moment), up to about 20x where a sun dominates a well-sampled pixel; 20 x 2.5e-3 = 5 %,
 about what the level saves in time."""
+
+COMPENSATION_RESIDUE = 1e-6
+"""A compensated target that keeps less than this share of the map's integral is taken for
+rounding noise (a constant map: every cell its mean), and the map stays uncompensated."""
 
 TRIM_FLOOR_DEPTH = 9
 """Trimming never takes a pyramid below this level: at depth 9 the whole pyramid is 2 MB
@@ -184,12 +189,19 @@ def _corner_radiance(lum: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
-    """Integrate band profiles over the n phi-cells of the grid.
+def _phi_integrals(bands: np.ndarray, n: int, scale: float = 1.0) -> mi.Float64:
+    """Integrate band profiles over the n phi-cells of the grid, times ``scale``.
 
-    ``bands`` (rows, W) are values at texel columns x (u_x = (x+0.5)/W),
-    linear in u between columns and periodic. Returns (rows, n), float64,
-    column iphi = integral over phi_g in [2 pi iphi/n, 2 pi (iphi+1)/n].
+    ``bands`` (n, W) are values at texel columns x (u_x = (x+0.5)/W), linear in u
+    between columns and periodic (one row per z-band: :func:`_theta_integrals`).
+    Returns the (n, n) cells row-major as a float64 device array, column iphi =
+    integral over phi_g in [2 pi iphi/n, 2 pi (iphi+1)/n].
+
+    Two kernels: the rows' trapezoid prefix sums (a block prefix sum), then the n^2
+    cells, a lane per cell, reading the antiderivative at its two edges.
+    The sizes are opaque: every map and depth runs the same compiled code. (In numpy,
+    with the corners, the compensation and the sums, the build of a 512 x 256 map's two
+    pyramids took 0.7 s of a new scene's set-up; docs/MEASUREMENTS.md.)
     """
     rows, width = bands.shape
     # Texel coordinate s = u W - 0.5; cell edges u_k = k/n.
@@ -197,20 +209,75 @@ def _phi_integrals(bands: np.ndarray, n: int) -> np.ndarray:
     floor_s = np.floor(s_edges)
     frac = s_edges - floor_s
     # Extended node j sits at s = j - 1 and holds column (j - 1) mod W.
-    node = (floor_s + 1).astype(np.int64)
-    wrap = np.concatenate([[width - 1], np.arange(width), [0]])
+    node = (floor_s + 1).astype(np.uint32)
 
-    out = np.empty((rows, n))
-    for r0 in range(0, rows, _CHUNK):
-        ext = bands[r0:r0 + _CHUNK][:, wrap]
-        cumulative = np.zeros_like(ext)
-        np.cumsum(0.5 * (ext[:, :-1] + ext[:, 1:]), axis=1, out=cumulative[:, 1:])
-        lo, hi = ext[:, node], ext[:, node + 1]
-        antideriv = cumulative[:, node] + lo * frac + (hi - lo) * (0.5 * frac * frac)
-        u_cells = (TWO_PI / width) * (antideriv[:, 1:] - antideriv[:, :-1])
-        # phi_g = 2 pi (1 - u): phi-cell iphi is u-cell n - 1 - iphi.
-        out[r0:r0 + _CHUNK] = u_cells[:, ::-1]
-    return out
+    u32, f64 = mi.UInt32, mi.Float64
+    values = device_array(f64, bands)
+    size, texels, stride = dr.opaque(u32, n), dr.opaque(u32, width), dr.opaque(u32, width + 2)
+
+    def extended(row, j):  # the value at extended node j of a row
+        return dr.gather(f64, values, row * texels + (j + texels - 1) % texels)
+
+    # Each row's trapezoid prefix sums over the extended nodes: cumulative[j] = sum over
+    # i < j of (ext[i] + ext[i + 1]) / 2.
+    lane = dr.arange(u32, rows * (width + 2))
+    row, j = lane // stride, lane % stride
+    trapezoid = dr.select(j <= texels, 0.5 * (extended(row, j) + extended(row, j + 1)), 0.0)
+    cumulative = dr.block_prefix_sum(trapezoid, width + 2, exclusive=True)
+    node, frac = device_array(u32, node), device_array(f64, frac)
+    lane = dr.arange(u32, rows * n)
+    row, column = lane // size, lane % size
+
+    def antiderivative(edge):
+        first = dr.gather(u32, node, edge)
+        lo, hi = extended(row, first), extended(row, first + 1)
+        f = dr.gather(f64, frac, edge)
+        return (dr.gather(f64, cumulative, row * stride + first) + lo * f) + (hi - lo) * (0.5 * f * f)
+
+    # phi_g = 2 pi (1 - u): phi-cell iphi is u-cell n - 1 - iphi.
+    u_cell = size - 1 - column
+    cells = (dr.opaque(f64, TWO_PI / width) * (antiderivative(u_cell + 1) - antiderivative(u_cell)))
+    return cells * dr.opaque(f64, scale) if scale != 1.0 else cells
+
+
+def _corner_radiance(lum: np.ndarray, n: int, scale: float = 1.0) -> mi.Float:
+    """The map's luminance at the corners of the finest cells times ``scale``, clamped at 0:
+    (n + 1)^2 float32 values on the device, row-major, rows iz (z = -1 + 2 iz / n),
+    columns iphi (phi = 2 pi iphi / n).
+
+    The same interpolant as the integrals: linear in theta between rows (row y at
+    theta = y pi / (H - 1), the +Y pole first), linear in u between columns (column x
+    at u = (x + 0.5) / W, periodic), with u = 1 - phi / (2 pi) in the grid frame. One
+    kernel, a lane per corner, from per-row and per-column weights made on the host, in
+    float32 arithmetic: along theta at the texel columns, then along u.
+    """
+    height, width = lum.shape
+    theta = np.arccos(np.clip(-1.0 + 2.0 * np.arange(n + 1) / n, -1.0, 1.0))
+    row = np.clip(theta * (height - 1) / np.pi, 0.0, height - 1)
+    r0 = np.minimum(row.astype(np.int64), max(height - 2, 0))
+    fr = row - r0
+    r1 = np.minimum(r0 + 1, height - 1)
+    column = ((1.0 - np.arange(n + 1) / n) * width - 0.5) % width
+    c0 = np.floor(column).astype(np.int64) % width
+    fc = column - np.floor(column)
+    c1 = (c0 + 1) % width
+
+    u32, f32 = mi.UInt32, mi.Float
+    texels = device_array(f32, lum)
+    size = dr.opaque(u32, n + 1)
+    lane = dr.arange(u32, (n + 1) * (n + 1))
+    i, j = lane // size, lane % size
+
+    upper, lower = dr.gather(u32, device_array(u32, r0 * width), i), dr.gather(u32, device_array(u32, r1 * width), i)
+    keep_r, take_r = (dr.gather(f32, device_array(f32, w), i) for w in (1 - fr, fr))
+    left, right = dr.gather(u32, device_array(u32, c0), j), dr.gather(u32, device_array(u32, c1), j)
+    keep_c, take_c = (dr.gather(f32, device_array(f32, w), j) for w in (1 - fc, fc))
+
+    def along_theta(c):
+        return dr.gather(f32, texels, upper + c) * keep_r + dr.gather(f32, texels, lower + c) * take_r
+
+    out = along_theta(left) * keep_c + along_theta(right) * take_c
+    return dr.maximum(out * dr.opaque(f32, np.float32(scale)), 0.0)
 
 
 def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> float:
@@ -235,15 +302,26 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
         return 0.0
     m = n // parts
     leaf_share = finest.reshape(m, parts, m, parts).sum(axis=(1, 3), dtype=np.float64) / total
-    leaf_corners = np.asarray(corners[::parts, ::parts], dtype=np.float64)  # (m + 1, m + 1)
+    # Read in its own precision (a float32 level is not copied to float64 on the host; a cell
+    # below float32's normal range would add under 1e-60 to the sum).
+    share = mi.Float64(device_array(mi.Float if finest.dtype == np.float32 else mi.Float64, finest)) / total
+    return _leaf_excess(share, device_array(mi.Float64, leaf_share),
+                        device_array(mi.Float64, corners[::parts, ::parts]), n, level)
 
+
+def _leaf_excess(share: mi.Float64, leaf_share: mi.Float64, leaf_corners: mi.Float64, n: int, level: int) -> float:
+    """:func:`coarse_leaf_excess` from device arrays: the finest cells' shares of the total
+    (n^2), level ``level``'s (m^2, m = 2^level) and the target at that level's corners
+    ((m + 1)^2), all row-major."""
+    parts = n >> level
+    m = n // parts
     u32 = mi.UInt32
     shift, size, sub_cells = dr.opaque(u32, parts.bit_length() - 1), dr.opaque(u32, n), dr.opaque(u32, parts)
     lane = dr.arange(u32, n * n)
     row, column = lane // size, lane % size
     leaf_row, leaf_column = row >> shift, column >> shift
     leaves = dr.opaque(u32, m)
-    corner = device_array(mi.Float64, leaf_corners)
+    corner = leaf_corners
     first = leaf_row * (leaves + 1) + leaf_column
     v = [dr.gather(mi.Float64, corner, index) for index in (first, first + 1, first + leaves + 1, first + leaves + 2)]
     floor = CORNER_FLOOR * (v[0] + v[1] + v[2] + v[3])
@@ -251,7 +329,7 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
     quarter_sum = 0.25 * (v[0] + v[1] + v[2] + v[3])
     # A leaf with black corners is placed uniformly: as four equal corners.
     lit = quarter_sum > 0
-    scale = dr.gather(mi.Float64, device_array(mi.Float64, leaf_share), leaf_row * leaves + leaf_column) \
+    scale = dr.gather(mi.Float64, leaf_share, leaf_row * leaves + leaf_column) \
         / dr.select(lit, quarter_sum, 1.0)
     v00, v01, v10, v11 = (dr.select(lit, x, 1.0) * scale for x in v)
 
@@ -266,9 +344,6 @@ def coarse_leaf_excess(finest: np.ndarray, corners: np.ndarray, level: int) -> f
     # q = leaf share x the bilinear mass of the sub-cell; 0 only in a leaf of zero share,
     # whose cells' shares are 0 too.
     q = low_z * (v00 * low_phi + v01 * high_phi) + high_z * (v10 * low_phi + v11 * high_phi)
-    # Read in its own precision (a float32 level is not copied to float64 on the host; a cell
-    # below float32's normal range would add under 1e-60 to the sum).
-    share = mi.Float64(device_array(mi.Float if finest.dtype == np.float32 else mi.Float64, finest)) / total
     second_moment = dr.sum(dr.select(q > 0, share * share / q, 0.0))
     return float(second_moment.numpy()[0]) - 1.0
 
@@ -281,35 +356,83 @@ def check_level_tolerance(tolerance) -> float:
     return float(tolerance)
 
 
-def trimmed_depth(finest: np.ndarray, corners: np.ndarray, tolerance: float,
-                  floor_depth: int = TRIM_FLOOR_DEPTH) -> int:
+def trimmed_depth(levels: list, corners: mi.Float, tolerance: float, floor_depth: int = TRIM_FLOOR_DEPTH) -> int:
     """The coarsest level >= ``floor_depth`` whose leaves sample the finest level within
-    ``tolerance`` (:func:`coarse_leaf_excess` below it); the finest level D if none is."""
-    depth = int(finest.shape[0]).bit_length() - 1
+    ``tolerance`` (:func:`coarse_leaf_excess` below it); the finest level D if none is.
+    ``levels``: :func:`sum_levels`' (level k at index k, float64 on the device), ``corners``
+    the target at level D's corners ((2^D + 1)^2, row-major, on the device)."""
+    depth = len(levels) - 1
+    total = float(levels[0].numpy()[0])
+    share = levels[depth] / total if total > 0 else None
     keep = depth
     for level in range(depth - 1, floor_depth - 1, -1):
-        if not coarse_leaf_excess(finest, corners, level) < tolerance:
+        excess = 0.0 if share is None else _leaf_excess(
+            share, levels[level] / total, mi.Float64(corners_at_level(corners, depth, level)), 1 << depth, level)
+        if not excess < tolerance:
             break
         keep = level
     return keep
 
 
-def sum_pyramid_blocks(finest: np.ndarray) -> np.ndarray:
-    """The sum pyramid of a finest level in :class:`EnvPyramid`'s buffer layout, in
-    ``finest``'s dtype: (..., 2^D, 2^D) -> (..., 4 * block_offset(D)) (leading axes:
-    several pyramids at once). Block 0 is [root, 0, 0, 0]; then level by level one
-    block per parent, its children in (z-half, phi-half) order (0,0), (0,1), (1,0), (1,1)."""
-    lead = finest.shape[:-2]
-    depth = int(finest.shape[-1]).bit_length() - 1
-    out = np.zeros(lead + (4 * block_offset(depth),), dtype=finest.dtype)
-    level = finest
+def corners_at_level(corners: mi.Float, depth: int, level: int) -> mi.Float:
+    """Level ``level``'s corners ((2^level + 1)^2) among level ``depth``'s (every
+    2^(depth - level)-th row and column: a coarser level's corners are a subset)."""
+    if level == depth:
+        return corners
+    u32 = mi.UInt32
+    m, parts = 1 << level, 1 << (depth - level)
+    lane = dr.arange(u32, (m + 1) * (m + 1))
+    size = dr.opaque(u32, m + 1)
+    row, column = lane // size, lane % size
+    return dr.gather(type(corners), corners, (row * dr.opaque(u32, parts)) * dr.opaque(u32, (1 << depth) + 1)
+                     + column * dr.opaque(u32, parts))
+
+
+def in_blocks(level_values: mi.Float64, level: int, count: int = 1) -> mi.Float64:
+    """Level ``level`` of ``count`` pyramids (4^level values each, row-major, one pyramid
+    after the other) in :func:`sum_pyramid_blocks`' order: per pyramid one 4-value block
+    per level - 1 parent (row-major), its children (0,0), (0,1), (1,0), (1,1)."""
+    u32 = mi.UInt32
+    lane = dr.arange(u32, count << (2 * level))
+    shift = dr.opaque(u32, level - 1)
+    pyramid, block = lane >> (2 * shift + 2), lane & ((u32(1) << (2 * shift + 2)) - 1)
+    parent, child = block >> 2, block & 3
+    parent_row, parent_column = parent >> shift, parent & ((u32(1) << shift) - 1)
+    row, column = (parent_row << 1) | (child >> 1), (parent_column << 1) | (child & 1)
+    return dr.gather(type(level_values), level_values, (pyramid << (2 * shift + 2)) | (row << (shift + 1)) | column)
+
+
+def sum_levels(finest: mi.Float64, depth: int, count: int = 1) -> tuple[list, list]:
+    """The sum pyramids of ``count`` levels ``depth`` (4^depth cells each, row-major, one
+    after the other) on the device, in float64: ``(levels, blocks)``, ``levels[k]`` level k
+    row-major (k = 0 .. depth) and ``blocks[k]`` level k in block order (:func:`in_blocks`;
+    k = 1 .. depth, ``blocks[0]`` None). A parent is the sum of its block's four children
+    (one block reduction a level: the same order of additions in every process)."""
+    levels, blocks = [None] * (depth + 1), [None] * (depth + 1)
+    levels[depth] = mi.Float64(finest)
     for k in range(depth, 0, -1):
-        m = level.shape[-1] // 2
-        begin = 4 * block_offset(k - 1)
-        quads = level.reshape(*lead, m, 2, m, 2)
-        out[..., begin:begin + 4 * m * m] = np.moveaxis(quads, -3, -2).reshape(*lead, -1)
-        level = quads.sum(axis=(-3, -1))
-    out[..., 0] = level[..., 0, 0]
+        blocks[k] = in_blocks(levels[k], k, count)
+        dr.eval(blocks[k])
+        levels[k - 1] = dr.block_sum(blocks[k], 4, mode="evaluated")
+    return levels, blocks
+
+
+def sum_pyramid_blocks(finest: mi.Float64, depth: int, count: int = 1) -> mi.Float64:
+    """The sum pyramids of ``count`` finest levels (4^depth cells each, row-major, one after
+    the other, on the device) in :class:`EnvPyramid`'s buffer layout, float64, one after the
+    other (4 * block_offset(depth) values each). Block 0 is [root, 0, 0, 0]; then level by
+    level one block per parent, its children in (z-half, phi-half) order (0,0), (0,1),
+    (1,0), (1,1). (In numpy, the 486 cosine tables of a map took 0.09 s; docs/MEASUREMENTS.md.)"""
+    levels, blocks = sum_levels(finest, depth, count)
+    u32 = mi.UInt32
+    stride = 4 * block_offset(depth)
+    out = dr.zeros(mi.Float64, count * stride)
+    dr.scatter(out, levels[0], dr.arange(u32, count) * stride)
+    for k in range(1, depth + 1):
+        lane = dr.arange(u32, count << (2 * k))
+        per_pyramid = dr.opaque(u32, 2 * k)
+        pyramid, local = lane >> per_pyramid, lane & ((u32(1) << per_pyramid) - 1)
+        dr.scatter(out, blocks[k], pyramid * dr.opaque(u32, stride) + dr.opaque(u32, 4 * block_offset(k - 1)) + local)
     return out
 
 
@@ -343,7 +466,8 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """The finest level and the corner values in one array of records, float32
     (m, m, :data:`LEAF_RECORD_FLOATS`) for the m x m cells of level D - 1 (m = 2^(D-1)).
 
-    Record (I, J) holds that cell's four children (the 4-float block of
+    ``finest_blocks`` and ``corners`` are numpy arrays or flat device arrays (the same
+    values row-major). Record (I, J) holds that cell's four children (the 4-float block of
     :func:`sum_pyramid_blocks`, ``finest_blocks`` row I m + J), then one 32-bit word per
     child, in the same order, with the target at that leaf's four corners (z0 phi0, z0
     phi1, z1 phi0, z1 phi1: ``corners`` (2m + 1, 2m + 1) at rows iz, iz + 1 and columns
@@ -360,7 +484,8 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     (:meth:`EnvPyramid.leaf_corners`), so bytes lose nothing that the floor does not
     already set; the sample and its pdf read the same bytes.
     """
-    m = corners.shape[0] // 2
+    on_host = isinstance(corners, np.ndarray)
+    m = (corners.shape[0] if on_host else math.isqrt(dr.width(corners))) // 2
     n = 2 * m
     u32 = mi.UInt32
     size = dr.opaque(u32, n)
@@ -371,7 +496,8 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     row, column = leaf // size, leaf % size
     # float32 corners in float64 lanes (exactly: :func:`_float64_of_float32_bits`), each step
     # rounded to float32 as float32 arithmetic would round it.
-    corner = device_array(mi.UInt32, np.ascontiguousarray(corners, dtype=np.float32).view(np.uint32))
+    corner = device_array(mi.UInt32, np.ascontiguousarray(corners, dtype=np.float32).view(np.uint32)) if on_host \
+        else dr.reinterpret_array(u32, mi.Float(corners))
     first = row * (size + 1) + column
     value = [_float64_of_float32_bits(dr.gather(u32, corner, index))
              for index in (first, first + 1, first + size + 1, first + size + 2)]
@@ -388,7 +514,8 @@ def leaf_records(finest_blocks: np.ndarray, corners: np.ndarray) -> np.ndarray:
     dr.scatter(records, dr.reinterpret_array(mi.Float, word),
                record * LEAF_RECORD_FLOATS + 4 + ((row & 1) << 1) + (column & 1))
     child = dr.arange(u32, m * m * 4)
-    dr.scatter(records, device_array(mi.Float, finest_blocks), (child >> 2) * LEAF_RECORD_FLOATS + (child & 3))
+    children = device_array(mi.Float, finest_blocks) if isinstance(finest_blocks, np.ndarray) else finest_blocks
+    dr.scatter(records, children, (child >> 2) * LEAF_RECORD_FLOATS + (child & 3))
     return np.asarray(records.numpy(), dtype=np.float32).reshape(m, m, LEAF_RECORD_FLOATS)
 
 
@@ -720,13 +847,15 @@ class EnvPyramid:
 
 
 class _FinestLevel:
-    """Level D's cell integrals (float64, (2^D, 2^D)) and corner radiance (float32, (2^D + 1,
-    2^D + 1)) of a map's uncompensated target; read-only (``_pyramid_arrays`` never writes them)."""
+    """Level D's cell integrals (float64, 4^D row-major) and corner radiance (float32,
+    (2^D + 1)^2 row-major) of a map's uncompensated target, on the device; read-only
+    (``_pyramid_arrays`` never writes them)."""
 
     def __init__(self, luminance: np.ndarray, scale: float, depth: int) -> None:
         n = 1 << depth
-        finest = scale * _phi_integrals(_theta_integrals(luminance, n), n)
-        corners = np.maximum(_corner_radiance(luminance, n) * np.float32(scale), 0.0)
+        finest = _phi_integrals(_theta_integrals(luminance, n), n, scale)
+        corners = _corner_radiance(luminance, n, scale)
+        dr.eval(finest, corners)
         self.arrays = (finest, corners)
 
 
@@ -757,32 +886,32 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
     ``trimmed_levels``, ``total`` (the root), ``radiant_total`` and ``compensated``."""
     level = _target_at_finest_level(luminance, scale, depth)  # kept alive for the other pyramid's build
     finest, corners = level.arrays
-    radiant_total = float(finest.sum(dtype=np.float64))
+    radiant_total = float(dr.sum(finest).numpy()[0])
     compensated = False
     if mis_compensation and radiant_total > 0:
         # MIS compensation (Karlik et al. 2019): subtract the mean radiance
         # (cells have equal solid angle) so this strategy concentrates on
         # what is brighter than average and leaves the rest to BSDF sampling.
-        # A constant map would become black: keep it uncompensated then.
-        sharpened = np.maximum(finest - radiant_total / finest.size, 0.0)
-        if sharpened.max() > 0:
-            finest, compensated = sharpened.astype(np.float32), True
-            corners = np.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
+        # A constant map would become black: keep it uncompensated then. (Its cells differ
+        # from their mean by rounding alone: what compensation leaves of such a map is noise,
+        # under COMPENSATION_RESIDUE of its integral.)
+        sharpened = mi.Float(dr.maximum(finest - radiant_total / (1 << (2 * depth)), 0.0))
+        dr.eval(sharpened)
+        if float(dr.sum(mi.Float64(sharpened)).numpy()[0]) > COMPENSATION_RESIDUE * radiant_total:
+            finest, compensated = mi.Float64(sharpened), True
+            corners = dr.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
 
+    levels, blocks = sum_levels(finest, depth)
     built_depth = depth
-    depth = trimmed_depth(finest, corners, level_tolerance)  # checked by the constructors
-    if depth < built_depth:
-        # The finest levels do not pay (LEVEL_TOLERANCE): their sums and every other
-        # corner are the coarser level's exactly (its corners are a subset of theirs).
-        parts = 1 << (built_depth - depth)
-        finest = finest.astype(np.float64).reshape(1 << depth, parts, 1 << depth, parts).sum(axis=(1, 3))
-        corners = np.ascontiguousarray(corners[::parts, ::parts])
-
-    blocks = sum_pyramid_blocks(finest)
+    # The finest levels that do not pay (LEVEL_TOLERANCE) are dropped: their sums and every
+    # other corner are the coarser level's exactly (its corners are a subset of theirs).
+    depth = trimmed_depth(levels, corners, level_tolerance)  # checked by the constructors
+    corners = corners_at_level(corners, built_depth, depth)
     # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
     # leaf records with the corners they need (see :func:`leaf_records`).
-    upper_end = 4 * block_offset(depth - 1)
-    return {"buffer": blocks[:upper_end].astype(np.float32),
-            "records": leaf_records(blocks[upper_end:].astype(np.float32), corners),
-            "depth": depth, "trimmed_levels": built_depth - depth, "total": float(blocks[0]),
+    total = float(levels[0].numpy()[0])
+    buffer = np.concatenate([np.array([total, 0.0, 0.0, 0.0], dtype=np.float32)]
+                            + [mi.Float(blocks[k]).numpy() for k in range(1, depth)])
+    return {"buffer": buffer, "records": leaf_records(mi.Float(blocks[depth]), corners),
+            "depth": depth, "trimmed_levels": built_depth - depth, "total": total,
             "radiant_total": radiant_total, "compensated": compensated}

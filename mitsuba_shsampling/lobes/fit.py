@@ -22,8 +22,10 @@ lighting. The mixture keeps the criterion finite where the proxy has no support
 that is much too narrow or too wide. The energy w_d + w_g is matched exactly
 (on the fitting quadrature).
 
-Everything here is float64 numpy on the host except the BSDF evaluation, which
-is one vectorised ``bsdf.eval`` call per BSDF.
+The BSDF is evaluated in one kernel per BSDF and side (every view node, light node and
+surface position), and the search runs in one kernel a stage over every view node
+(:func:`fit_two_lobes`); the quadratures and the Phong lobe's table are made once per
+process in float64 numpy.
 """
 
 from __future__ import annotations
@@ -155,9 +157,35 @@ def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.
     Returns an array (K, M, U * azimuths) of g values (luminance, per steradian).
     """
     k_count, m_count = light_directions.shape[:2]
+    directions = _turned_directions(view_cosines, np.asarray(light_directions, dtype=np.float64), back_side, azimuths)
+    values = _lobe_values(bsdf, directions, uvs, back_side)
+    return np.array(values, dtype=np.float64).reshape(k_count, m_count, len(uvs) * azimuths)
+
+
+def mean_mirror_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, uvs: np.ndarray, back_side: bool = False,
+                     azimuths: int = 1) -> mi.Float:
+    """:func:`tabulate_lobe` on the :func:`mirror_quadrature` of each view elevation, averaged
+    over the surface positions (and azimuths) on the device: K M float32 values, view-major,
+    ready for :func:`fit_two_lobes`. The directions are made once per process."""
+    directions = _mirror_directions(tuple(float(c) for c in view_cosines), back_side, azimuths)
+    values = mi.Float64(_lobe_values(bsdf, directions, uvs, back_side))
+    positions = len(uvs) * azimuths
+    return mi.Float(dr.block_sum(values, positions, mode="evaluated") / positions) if positions > 1 \
+        else mi.Float(values)
+
+
+@functools.lru_cache(maxsize=8)
+def _mirror_directions(view_cosines: tuple, back_side: bool, azimuths: int) -> tuple:
+    lights = np.stack([mirror_quadrature(c).directions for c in view_cosines])
+    return _turned_directions(np.array(view_cosines), lights, back_side, azimuths)
+
+
+def _turned_directions(view_cosines: np.ndarray, light_directions: np.ndarray, back_side: bool,
+                       azimuths: int) -> tuple:
+    """The view directions (K azimuths) and light directions (K M azimuths) of :func:`tabulate_lobe`
+    on the device, each turned by every azimuth, mirrored below the surface for ``back_side``."""
+    k_count, m_count = light_directions.shape[:2]
     angles = np.arange(azimuths) * np.pi / azimuths
-    uv_count = len(uvs)
-    u_count = uv_count * azimuths
     flip = -1.0 if back_side else 1.0
 
     def turned(d):  # (..., 3) -> (..., azimuths, 3): each direction at every angle, float32
@@ -167,36 +195,44 @@ def tabulate_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, light_directions: np.
         z = np.broadcast_to(d[..., None, 2], x.shape)
         return np.stack([x, y, flip * z], axis=-1).reshape(-1, 3).astype(np.float32)
 
+    def on_device(table):
+        return mi.Vector3f(*(device_array(mi.Float, table[:, i]) for i in range(3)))
+
+    wi = turned(np.stack([view_direction(c) for c in view_cosines]))   # (K azimuths, 3)
+    wo = turned(light_directions)                                       # (K M azimuths, 3)
+    return on_device(wi), on_device(wo), k_count, m_count, azimuths
+
+
+def _lobe_values(bsdf: mi.BSDF, directions: tuple, uvs: np.ndarray, back_side: bool) -> mi.Float:
+    """luminance(bsdf.eval) at every (view k, light m, azimuth a, uv position j), in that
+    order (j fastest), on the device; non-finite and negative values as 0."""
+    wi, wo, k_count, m_count, azimuths = directions
+    uv_count = len(uvs)
+    u_count = uv_count * azimuths
     # The K x M x U table is indexed in the kernel: lane (k, m, a, j) reads view k and
     # light m turned by angle a, at uv position j. Only the small per-view and
     # per-light arrays cross from the host (K M U copies of them cost more than the
     # BSDF evaluations).
-    wi = turned(np.stack([view_direction(c) for c in view_cosines]))   # (K azimuths, 3)
-    wo = turned(np.asarray(light_directions, dtype=np.float64))        # (K M azimuths, 3)
     lane = dr.arange(mi.UInt32, k_count * m_count * u_count)
     light_index, u = lane // u_count, lane % u_count
     angle, uv_index = u // uv_count, u % uv_count
     view_index = (light_index // m_count) * azimuths + angle
 
-    def gathered(table, index):
-        return dr.gather(mi.Vector3f, mi.Vector3f(*(device_array(mi.Float, table[:, i]) for i in range(3))), index)
-
     si = dr.zeros(mi.SurfaceInteraction3f, k_count * m_count * u_count)
     if mi.is_spectral:
         si.wavelengths = fit_wavelengths()
     si.t = 0.0
-    si.n = mi.Normal3f(0.0, 0.0, flip)
+    si.n = mi.Normal3f(0.0, 0.0, -1.0 if back_side else 1.0)
     si.sh_frame = mi.Frame3f(mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0),
                              mi.Vector3f(0.0, 0.0, 1.0))
     uvs = np.asarray(uvs, dtype=np.float32)
     si.uv = dr.gather(mi.Point2f, mi.Point2f(device_array(mi.Float, uvs[:, 0]), device_array(mi.Float, uvs[:, 1])), uv_index)
-    si.wi = gathered(wi, view_index)
-    light = gathered(wo, light_index * azimuths + angle)
+    si.wi = dr.gather(mi.Vector3f, wi, view_index)
+    light = dr.gather(mi.Vector3f, wo, light_index * azimuths + angle)
     value = luminance(bsdf.eval(mi.BSDFContext(), si, light))
-    g = np.array(value, dtype=np.float64).reshape(k_count, m_count, u_count)
     # Negative or non-finite values would make the fit meaningless; they can only
     # come from a broken plugin, and a lobe is non-negative by definition.
-    return np.where(np.isfinite(g), np.maximum(g, 0.0), 0.0)
+    return dr.select(dr.isfinite(value), dr.maximum(value, 0.0), 0.0)
 
 
 @functools.lru_cache(maxsize=256)
@@ -234,57 +270,65 @@ class TwoLobeFit:
     divergence: float
 
 
-def mis_divergence(g: np.ndarray, proxy: np.ndarray, weights: np.ndarray, energy: float):
-    """Chi-square divergence of g against the defensive mixture (proxy + g) / 2.
-
-    ``proxy`` has shape (..., M) and integrates (over the sphere) to ``energy``;
-    g (M,) must be > 0 on every node (nodes where g = 0 contribute nothing and
-    are dropped by the caller) and integrates to ``energy`` over the quadrature.
-    Returns an array (...), 0 when the proxy equals g on the hemisphere.
-    """
-    mixture = 0.5 * (proxy + g)
-    return (g * g / mixture) @ weights / energy - 1.0
-
-
 def fit_two_lobe(g: np.ndarray, quadrature: LobeQuadrature) -> TwoLobeFit:
-    """Fit (w_d, w_g, s) of the diffuse + Phong proxy to one tabulated lobe.
+    """Fit (w_d, w_g, s) of the diffuse + Phong proxy to one tabulated lobe: :func:`fit_two_lobes`
+    for one lobe ``g`` (M,) on ``quadrature`` (a :func:`mirror_quadrature`)."""
+    return fit_two_lobes(np.asarray(g, dtype=np.float64)[None, :], [quadrature], np.array([0]))[0]
 
-    ``g`` (M,) is the lobe on ``quadrature``, whose axis is the Phong axis.
 
-    Coarse grid search over ``PHONG_EXPONENTS`` x ``DIFFUSE_FRACTIONS``, then one
-    finer search around the best pair. The coarse grid is screened on a quarter of the
-    nodes (:data:`SCREEN_STRIDE`), and its :data:`SHORTLIST` best candidates there are
-    weighed again on every node: the coarse pick is the grid's own wherever it is among
-    them. (The 560 fits of the built-in scenes and ten rough conductors and plastics are
-    the whole grid's bit for bit, in 0.53 s where they took 0.88; docs/MEASUREMENTS.md.)
-    Returns all-zero weights when the lobe carries no energy.
+def fit_two_lobes(g, quadratures: list, views: np.ndarray) -> list[TwoLobeFit]:
+    """Fit (w_d, w_g, s) of the diffuse + Phong proxy to F tabulated lobes at once.
+
+    ``g``: the lobes, (F, M) numpy or F M values on the device, lobe f on the nodes of
+    ``quadratures[views[f]]`` (made by :func:`mirror_quadrature`: their axis is the Phong axis).
+
+    Coarse grid search over ``PHONG_EXPONENTS`` x ``DIFFUSE_FRACTIONS``, then one finer
+    search around the best pair. The coarse grid is screened on a quarter of the nodes
+    (:data:`SCREEN_STRIDE`), and its :data:`SHORTLIST` best candidates there are weighed again
+    on every node: the coarse pick is the grid's own wherever it is among them. Each stage is
+    one kernel over every lobe and candidate (:func:`_divergences`); the Phong lobe's values
+    at the nodes come from a table made once per process (:func:`_phong_table`): the same
+    float32 terms as the numpy search this replaces, summed in float64. (The numpy search
+    took 0.2-0.3 s of a new scene's set-up for its 176 fits; docs/MEASUREMENTS.md.)
+    Returns all-zero weights for a lobe that carries no energy.
     """
-    weights = quadrature.weights
-    energy = float(g @ weights)
-    if not energy > 0.0:
-        return TwoLobeFit(0.0, 0.0, 1.0, 0.0)
+    tables = _FitTables.of(quadratures)
+    count = len(views)
+    g = device_array(mi.Float, g) if isinstance(g, np.ndarray) else mi.Float(g)
+    views = np.asarray(views, dtype=np.uint32)
+    energy = dr.block_sum(mi.Float64(g) * dr.gather(mi.Float64, tables.weights64, dr.arange(mi.UInt32, dr.width(g))
+                                                     % tables.nodes), tables.nodes, mode="evaluated")
+    energy = np.asarray(energy.numpy(), dtype=np.float64)
+    lobes = _Lobes(g, energy, views, tables)
 
-    # Only nodes where g or a candidate can be large matter; dropping g == 0 nodes
-    # is exact for the divergence (the ratio vanishes there).
-    keep = g > 0
-    nodes = _FitNodes(g, quadrature, keep)
-    screen = _FitNodes(g, quadrature, keep & quadrature.screen, weight_scale=SCREEN_STRIDE * SCREEN_STRIDE)
-
-    coarse = screen.divergence(energy, PHONG_EXPONENTS, DIFFUSE_FRACTIONS)
+    # Coarse, on the screen: every exponent (as lanes) against every diffuse fraction.
+    exponents = np.arange(len(PHONG_EXPONENTS))
+    coarse = lobes.divergences(np.repeat(exponents[None, :], count, 0) * FINE_STEPS + FINE_STEPS // 2,
+                               np.broadcast_to(DIFFUSE_FRACTIONS, (count, len(exponents), len(DIFFUSE_FRACTIONS))),
+                               screen=True)                                       # (F, S, T)
+    flat = coarse.reshape(count, -1)
     # The shortlist in the grid's order among equals, so that ties go as the grid's own argmin.
-    shortlist = np.argsort(coarse, axis=None, kind="stable")[:SHORTLIST]
-    rows, columns = np.unravel_index(shortlist, coarse.shape)
-    weighed = nodes.pair_divergence(energy, PHONG_EXPONENTS[rows], DIFFUSE_FRACTIONS[columns])
-    best = min(range(len(shortlist)), key=lambda k: (weighed[k], shortlist[k]))
-    s, t = PHONG_EXPONENTS[rows[best]], DIFFUSE_FRACTIONS[columns[best]]
+    shortlist = np.argsort(flat, axis=1, kind="stable")[:, :SHORTLIST]            # (F, K)
+    rows, columns = np.unravel_index(shortlist, coarse.shape[1:])
+    weighed = lobes.divergences(rows * FINE_STEPS + FINE_STEPS // 2, DIFFUSE_FRACTIONS[columns][..., None])[..., 0]
+    best = np.array([min(range(SHORTLIST), key=lambda k: (weighed[f, k], shortlist[f, k])) for f in range(count)])
+    row, column = rows[np.arange(count), best], columns[np.arange(count), best]
 
-    step = PHONG_EXPONENTS[1] / PHONG_EXPONENTS[0]
-    fine_s = s * step ** np.linspace(-1.0, 1.0, 7)
-    fine_t = np.unique(np.clip(t + np.linspace(-0.1, 0.1, 9), 0.0, 1.0))
-    fine = nodes.divergence(energy, fine_s, fine_t)
-    i, j = np.unravel_index(np.argmin(fine), fine.shape)
-    s, t, d = fine_s[i], fine_t[j], fine[i, j]
-    return TwoLobeFit(energy * t, energy * (1.0 - t), float(s), float(d))
+    # Fine: the exponents a step either side of the pick (as lanes), fractions 0.1 either side.
+    fine_t = np.clip(DIFFUSE_FRACTIONS[column][:, None] + np.linspace(-0.1, 0.1, 9)[None, :], 0.0, 1.0)
+    fine = lobes.divergences(row[:, None] * FINE_STEPS + np.arange(FINE_STEPS)[None, :],
+                             np.repeat(fine_t[:, None, :], FINE_STEPS, 1))           # (F, 7, 9)
+    fits = []
+    for f in range(count):
+        if not energy[f] > 0.0:
+            fits.append(TwoLobeFit(0.0, 0.0, 1.0, 0.0))
+            continue
+        # The first minimum in row-major order: clipped fractions repeat at the ends with
+        # equal divergences, so this is the pick among the distinct fractions too.
+        i, j = np.unravel_index(np.argmin(fine[f]), fine[f].shape)
+        t, e = fine_t[f, j], energy[f]
+        fits.append(TwoLobeFit(e * t, e * (1.0 - t), float(FINE_EXPONENTS[row[f], i]), float(fine[f, i, j])))
+    return fits
 
 
 SCREEN_STRIDE = 2
@@ -294,32 +338,113 @@ quadrature (weights scaled to keep its total)."""
 SHORTLIST = 8
 """Coarse candidates the screen passes on to be weighed on every node."""
 
+FINE_STEPS = 7
+"""Exponents of the fine search: the coarse pick and three either side, up to one coarse step."""
 
-class _FitNodes:
-    """The nodes of a fit where the lobe is positive (``mask``), in float32: the lobe, the
-    weights (times ``weight_scale``), the Phong axis cosine and the diffuse lobe."""
+FINE_EXPONENTS = PHONG_EXPONENTS[:, None] * (PHONG_EXPONENTS[1] / PHONG_EXPONENTS[0]) \
+    ** np.linspace(-1.0, 1.0, FINE_STEPS)[None, :]
+"""(coarse exponent, fine step) -> exponent; the middle step is the coarse exponent itself."""
 
-    def __init__(self, g: np.ndarray, quadrature: LobeQuadrature, mask: np.ndarray, weight_scale: float = 1.0):
-        self.g = g[mask].astype(np.float32)
-        self.weights = (quadrature.weights[mask] * weight_scale).astype(np.float32)
-        self.cos_r = quadrature.cos_to_axis[mask]
-        self.diffuse = (np.maximum(quadrature.directions[mask, 2], 0.0) / math.pi).astype(np.float32)
+CHUNK_NODES = 128
+"""Nodes one lane of :meth:`_Lobes.divergences` sums (the rest of a lobe's nodes in other lanes)."""
 
-    def divergence(self, energy: float, exponents: np.ndarray, fractions: np.ndarray) -> np.ndarray:
-        """:func:`mis_divergence` of every (exponent, diffuse fraction) pair: (S, T)."""
-        glossy = phong_lobe(self.cos_r[None, :], exponents[:, None]).astype(np.float32)  # (S, M)
-        d = np.empty((len(exponents), len(fractions)))
-        for j, t in enumerate(fractions):
-            proxy = np.float32(energy * (1.0 - t)) * glossy + np.float32(energy * t) * self.diffuse
-            d[:, j] = mis_divergence(self.g, proxy, self.weights, energy)
-        return d
 
-    def pair_divergence(self, energy: float, exponents: np.ndarray, fractions: np.ndarray) -> np.ndarray:
-        """:func:`mis_divergence` of each (exponent k, diffuse fraction k) pair: (K,)."""
-        glossy = phong_lobe(self.cos_r[None, :], exponents[:, None]).astype(np.float32)  # (K, M)
-        proxy = (energy * (1.0 - fractions)).astype(np.float32)[:, None] * glossy \
-            + (energy * fractions).astype(np.float32)[:, None] * self.diffuse
-        return mis_divergence(self.g, proxy, self.weights, energy)
+class _FitTables:
+    """What every fit on the same view elevations shares, on the device: the nodes' weights
+    (float32, and float64 for the energy), the diffuse lobe per view (max(z, 0) / pi), the
+    Phong lobe of every :data:`FINE_EXPONENTS` value at every node (float32, computed in
+    float64) and the screen's node indices. Made once per set of quadratures (kept with them)."""
+
+    _made: dict = {}
+    MADE_ENTRIES = 8
+
+    def __init__(self, quadratures: list):
+        self.quadratures = list(quadratures)  # alive while their ids key the tables
+        first = quadratures[0]
+        self.nodes = len(first.weights)
+        self.weights64 = device_array(mi.Float64, first.weights)
+        self.weights = device_array(mi.Float, first.weights)
+        self.diffuse = device_array(mi.Float, np.stack([np.maximum(q.directions[:, 2], 0.0) / math.pi
+                                                        for q in quadratures]))
+        self.phong = _phong_table()
+        screen = np.flatnonzero(first.screen).astype(np.uint32)
+        self.screen = device_array(mi.UInt32, screen)
+        self.screen_nodes = len(screen)
+
+    @classmethod
+    def of(cls, quadratures: list) -> "_FitTables":
+        key = tuple(id(q) for q in quadratures)
+        tables = cls._made.get(key)
+        if tables is None:
+            if len(cls._made) >= cls.MADE_ENTRIES:
+                cls._made.pop(next(iter(cls._made)))
+            tables = cls._made[key] = cls(quadratures)
+        return tables
+
+
+@functools.lru_cache(maxsize=None)
+def _phong_table() -> mi.Float:
+    """The normalised Phong lobe of each :data:`FINE_EXPONENTS` value (rows, in its flat order)
+    at each node of the fitting quadrature (columns): float64 math, stored as float32, as the
+    numpy search computed it. The nodes' angle to the axis is the same for every elevation."""
+    cos_to_axis = mirror_quadrature(1.0).cos_to_axis
+    return device_array(mi.Float, phong_lobe(cos_to_axis[None, :], FINE_EXPONENTS.reshape(-1, 1)))
+
+
+class _Lobes:
+    """F tabulated lobes (float32 on the device, M nodes each), their energies and views."""
+
+    def __init__(self, g: mi.Float, energy: np.ndarray, views: np.ndarray, tables: _FitTables):
+        self.g, self.energy, self.views, self.tables = g, energy, views, tables
+
+    def divergences(self, exponents: np.ndarray, fractions: np.ndarray, screen: bool = False) -> np.ndarray:
+        """The chi-square divergence of lobe f against the defensive mixture (proxy + g) / 2,
+        ``sum_m w_m g_m^2 / ((proxy_m + g_m) / 2) / energy - 1`` (0 when the proxy equals g on the
+        hemisphere), for the proxy of exponent ``exponents[f, s]``
+        (a flat :data:`FINE_EXPONENTS` index) and diffuse fraction ``fractions[f, s, t]``, on
+        the nodes where the lobe is positive (of the screen only, weights scaled, with
+        ``screen``): (F, S, T). One kernel, a lane per (lobe, exponent, run of
+        :data:`CHUNK_NODES` nodes) summing every fraction's terms; the runs' sums added in float64."""
+        t = self.tables
+        count, s_count = exponents.shape
+        t_count = fractions.shape[2]
+        nodes = t.screen_nodes if screen else t.nodes
+        chunks = -(-nodes // CHUNK_NODES)
+        u32, f32 = mi.UInt32, mi.Float
+        lane = dr.arange(u32, count * s_count * chunks)
+        candidate, chunk = lane // dr.opaque(u32, chunks), lane % dr.opaque(u32, chunks)
+        fit = candidate // dr.opaque(u32, s_count)
+        row = dr.gather(u32, device_array(u32, exponents), candidate)
+        view = dr.gather(u32, device_array(u32, self.views), fit)
+        energy = np.repeat(self.energy, s_count)[:, None]
+        # The proxy's two weights per fraction, rounded to float32 as the numpy search did.
+        glossy_weight = device_array(f32, (energy * (1.0 - fractions.reshape(-1, t_count))).astype(np.float32))
+        diffuse_weight = device_array(f32, (energy * fractions.reshape(-1, t_count)).astype(np.float32))
+        a = [dr.gather(f32, glossy_weight, candidate * t_count + k) for k in range(t_count)]
+        b = [dr.gather(f32, diffuse_weight, candidate * t_count + k) for k in range(t_count)]
+        scale = float(SCREEN_STRIDE * SCREEN_STRIDE) if screen else 1.0
+        size, m_count = dr.opaque(u32, nodes), dr.opaque(u32, t.nodes)
+        end = dr.minimum((chunk + 1) * CHUNK_NODES, size)
+
+        def body(j, sums):
+            node = dr.gather(u32, t.screen, j) if screen else j
+            g = dr.gather(f32, self.g, fit * m_count + node)
+            weight = dr.gather(f32, t.weights, node) * scale
+            diffuse = dr.gather(f32, t.diffuse, view * m_count + node)
+            phong = dr.gather(f32, t.phong, row * m_count + node)
+            lit = g > 0
+            terms = [dr.select(lit, g * g / (0.5 * (a[k] * phong + b[k] * diffuse + g)) * weight, 0.0)
+                     for k in range(t_count)]
+            return j + 1, [s + mi.Float64(x) for s, x in zip(sums, terms)]
+
+        _, sums = dr.while_loop((chunk * CHUNK_NODES, [dr.zeros(mi.Float64, dr.width(lane)) for _ in range(t_count)]),
+                                lambda j, sums: j < end, body)
+        dr.eval(sums)  # one kernel for every fraction's sums (else one each)
+        totals = [dr.block_sum(x, chunks, mode="evaluated") for x in sums]
+        dr.eval(totals)
+        out = np.stack([np.asarray(x.numpy(), dtype=np.float64) for x in totals], axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return out.reshape(count, s_count, t_count) / energy.reshape(count, s_count, 1) - 1.0
 
 
 def uv_positions(count: int) -> np.ndarray:

@@ -106,8 +106,9 @@ def normal_bin(n: mi.Vector3f) -> mi.UInt32:
     return (mi.UInt32(face) * NORMAL_BINS + step(first)) * NORMAL_BINS + step(second)
 
 
-def mixture_tables(env_cells: np.ndarray, normals: np.ndarray, defensive_share: float) -> np.ndarray:
-    """W per normal at level :data:`TABLE_DEPTH`: (normals, 2^D, 2^D), float64, each summing to 1.
+def mixture_tables(env_cells: np.ndarray, normals: np.ndarray, defensive_share: float, on_device: bool = False):
+    """W per normal at level :data:`TABLE_DEPTH`: (normals, 2^D, 2^D), float64, each summing to 1
+    (``on_device``: the same values flat, one table after the other, as a device array).
 
     ``env_cells``: a level of the pyramid at least as fine as D (non-negative cell
     integrals, (2^k, 2^k), k >= D); ``normals`` (count, 3) grid-frame unit normals.
@@ -142,7 +143,7 @@ def mixture_tables(env_cells: np.ndarray, normals: np.ndarray, defensive_share: 
     lit = product_total > 0
     mixed = dr.select(lit, (1.0 - defensive_share) * product / dr.select(lit, product_total, 1.0)
                       + defensive_share * env_part, env_part)
-    return np.asarray(mixed.numpy(), dtype=np.float64).reshape(count, n, n)
+    return mixed if on_device else np.asarray(mixed.numpy(), dtype=np.float64).reshape(count, n, n)
 
 
 class CosineTableWeights:
@@ -185,13 +186,16 @@ class CosineTable:
         world = bin_normals()
         grid = pyramid.grid_from_world(mi.Vector3f(*(device_array(mi.Float, c) for c in world.T)))
         normals = np.stack([np.asarray(c.numpy(), dtype=np.float64) for c in (grid.x, grid.y, grid.z)], axis=1)
+        cells_per_table = 1 << (2 * TABLE_DEPTH)
         if pyramid.is_black:
-            blocks = sum_pyramid_blocks(np.full((len(world), 1 << TABLE_DEPTH, 1 << TABLE_DEPTH), 4.0**-TABLE_DEPTH))
+            blocks = sum_pyramid_blocks(dr.full(mi.Float64, 4.0**-TABLE_DEPTH, len(world) * cells_per_table),
+                                           TABLE_DEPTH, len(world)).numpy()
         else:
             cells = pyramid.level_numpy(min(TABLE_DEPTH + 1, pyramid.depth))
             # The same map level, frame and share give the same tables (build_cache).
             blocks = cached_build("cosine_tables", content_key(cells, normals, float(defensive_share)), lambda: {
-                "blocks": sum_pyramid_blocks(mixture_tables(cells, normals, defensive_share))})["blocks"]
+                "blocks": sum_pyramid_blocks(mixture_tables(cells, normals, defensive_share, on_device=True),
+                                                TABLE_DEPTH, len(world)).numpy()})["blocks"]
         self.buffer = device_array(mi.Float, blocks)
         self.nbytes = 4 * dr.width(self.buffer)
         dr.eval(self.buffer)
