@@ -13,7 +13,8 @@ runs, as Dr.Jit looks up a compiled kernel by its source:
   build, in a folder named after the package's code (a digest of its source files,
   so an edited build function never reads an older one's arrays): a fresh process on
   a scene rendered before skips the builds, as it skips the compilation of the
-  kernels.
+  kernels. Files are written in a thread of their own, off the set-up's path
+  (:func:`flush` waits for them; so does the interpreter at exit).
 
 ``SHSAMPLING_CACHE_DIR`` names another folder; ``SHSAMPLING_CACHE_DIR=off`` keeps
 builds in the process only, and so does :func:`kept_in_process` for the builds made
@@ -32,6 +33,7 @@ import tempfile
 import threading
 import warnings
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
@@ -50,6 +52,10 @@ _memory: "OrderedDict[str, Record]" = OrderedDict()
 _memory_lock = threading.Lock()
 #: Open :func:`kept_in_process` blocks (any thread's: the builds they start run in threads too).
 _in_process_only = 0
+#: Writes to the disk cache run in one thread of their own, off the set-up's path (a pyramid's
+#: ``.npz`` is 10-40 MB, 20-50 ms to write); the interpreter waits for them at exit.
+_writer: ThreadPoolExecutor | None = None
+_pending: list[Future] = []
 
 
 @contextlib.contextmanager
@@ -129,12 +135,30 @@ def cached_build(kind: str, key: str, build: Callable[[], Record]) -> Record:
     if record is None:
         record = build()
         if path and not _in_process_only:
-            _write(path, record)
+            _write_later(path, record)
     with _memory_lock:
         _memory[name] = record
         while len(_memory) > IN_PROCESS_ENTRIES:
             _memory.popitem(last=False)
     return record
+
+
+def _write_later(path: str, record: Record) -> None:
+    """:func:`_write` in the writer thread (the record's arrays are never written to after a build)."""
+    global _writer
+    with _memory_lock:
+        if _writer is None:
+            _writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="shsampling-build-cache")
+        _pending[:] = [f for f in _pending if not f.done()]
+        _pending.append(_writer.submit(_write, path, record))
+
+
+def flush() -> None:
+    """Wait until every build handed to the disk cache so far is written."""
+    with _memory_lock:
+        pending = list(_pending)
+    for future in pending:
+        future.result()
 
 
 def clear_in_process() -> None:

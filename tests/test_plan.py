@@ -343,6 +343,7 @@ def test_a_pyramid_read_from_the_disk_cache_equals_a_fresh_build(monkeypatch, tm
     scene = scene_of(("ggx",))
     fresh = sh_direct().scenes.get(scene).pyramid
     forget_shared()
+    build_cache.flush()
     build_cache.clear_in_process()
     built = count_calls(monkeypatch, pyramid_module, "_pyramid_arrays")
     cached = sh_direct().scenes.get(scene).pyramid
@@ -359,6 +360,7 @@ def test_a_rebuild_after_a_parameter_change_keeps_its_builds_in_the_process_not_
     build_cache.clear_in_process()
 
     def files():
+        build_cache.flush()
         return sorted(p.name for p in tmp_path.rglob("*.npz"))
 
     scene = scene_of(("ggx",))
