@@ -368,7 +368,7 @@ def test_the_fit_kernels_screened_search_finds_the_whole_grids_fit(bsdf):
     bsdf = mi.load_dict(bsdf)
     lobes = fit.tabulate_lobe(bsdf, cosines, np.stack([q.directions for q in quadratures]),
                               fit.uv_positions(1)).mean(axis=2)
-    fits = fit.fit_two_lobes(fit.mean_mirror_lobe(bsdf, cosines, fit.uv_positions(1)), quadratures, np.arange(6))
+    fits = fit.fit_two_lobes(fit.mean_mirror_lobe(bsdf, cosines, fit.uv_positions(1)), tuple(cosines), np.arange(6))
     for g, quadrature, found in zip(lobes, quadratures, fits):
         exponent, fraction, energy = whole_grid_fit(g, quadrature, fit)
         assert found.diffuse_weight == pytest.approx(energy * fraction, rel=1e-9, abs=1e-12)

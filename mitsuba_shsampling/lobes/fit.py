@@ -47,6 +47,10 @@ DIFFUSE_FRACTIONS = np.array([0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7
 """Candidate values of w_d / (w_d + w_g) of the coarse search."""
 
 
+N_THETA, N_PHI = 96, 48
+"""Rings and azimuths of a fitting quadrature (:class:`LobeQuadrature`)."""
+
+
 @dataclass
 class LobeQuadrature:
     """Quadrature over the sphere in polar coordinates about a lobe axis.
@@ -70,18 +74,13 @@ class LobeQuadrature:
     screen: np.ndarray | None = None
     """(M,) bool: the nodes of the coarse search's screen (every :data:`SCREEN_STRIDE`-th
     ring and azimuth)."""
+    axis: np.ndarray | None = None
+    """(3,) the unit axis."""
 
     @staticmethod
-    def build(axis: np.ndarray, n_theta: int = 96, n_phi: int = 48) -> "LobeQuadrature":
+    def build(axis: np.ndarray, n_theta: int = N_THETA, n_phi: int = N_PHI) -> "LobeQuadrature":
         theta, w_theta, phi = _polar_nodes(n_theta, n_phi)
-
-        e3 = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-        towards_normal = np.array([0.0, 0.0, 1.0]) - e3[2] * e3
-        if np.linalg.norm(towards_normal) < 1e-9:
-            towards_normal = np.array([1.0, 0.0, 0.0])
-        e1 = towards_normal / np.linalg.norm(towards_normal)
-        e2 = np.cross(e3, e1)
-
+        e1, e2, e3 = _axis_frame(axis)
         tt, pp = np.meshgrid(theta, phi, indexing="ij")
         st = np.sin(tt)
         directions = (np.cos(tt)[..., None] * e3 + (st * np.cos(pp))[..., None] * e1
@@ -91,7 +90,18 @@ class LobeQuadrature:
         screen = np.zeros((n_theta, n_phi), dtype=bool)
         screen[::SCREEN_STRIDE, ::SCREEN_STRIDE] = True
         return LobeQuadrature(directions.reshape(-1, 3), weights.reshape(-1),
-                              cos_to_axis.reshape(-1), screen.reshape(-1))
+                              cos_to_axis.reshape(-1), screen.reshape(-1), e3)
+
+
+def _axis_frame(axis: np.ndarray) -> tuple:
+    """(e1, e2, e3) of a quadrature about ``axis``: e3 the unit axis, e1 towards the normal
+    (phi' = 0), e2 = e3 x e1."""
+    e3 = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    towards_normal = np.array([0.0, 0.0, 1.0]) - e3[2] * e3
+    if np.linalg.norm(towards_normal) < 1e-9:
+        towards_normal = np.array([1.0, 0.0, 0.0])
+    e1 = towards_normal / np.linalg.norm(towards_normal)
+    return e1, np.cross(e3, e1), e3
 
 
 @functools.lru_cache(maxsize=None)
@@ -176,8 +186,41 @@ def mean_mirror_lobe(bsdf: mi.BSDF, view_cosines: np.ndarray, uvs: np.ndarray, b
 
 @functools.lru_cache(maxsize=8)
 def _mirror_directions(view_cosines: tuple, back_side: bool, azimuths: int) -> tuple:
-    lights = np.stack([mirror_quadrature(c).directions for c in view_cosines])
-    return _turned_directions(np.array(view_cosines), lights, back_side, azimuths)
+    """:func:`_turned_directions` of the mirror quadratures' nodes, turned in a kernel."""
+    nodes = mirror_nodes(view_cosines)
+    angles = np.arange(azimuths) * np.pi / azimuths
+    lane = dr.arange(mi.UInt32, dr.width(nodes) * azimuths)
+    node, angle = lane // azimuths, lane % azimuths
+    c = dr.gather(mi.Float64, device_array(mi.Float64, np.cos(angles)), angle)
+    s = dr.gather(mi.Float64, device_array(mi.Float64, np.sin(angles)), angle)
+    d = dr.gather(mi.Vector3d, nodes, node)
+    wo = mi.Vector3f(d.x * c - d.y * s, d.x * s + d.y * c, -d.z if back_side else d.z)
+    wi = _turned_directions(np.array(view_cosines), np.zeros((len(view_cosines), 1, 3)), back_side, azimuths)[0]
+    dr.eval(wo)
+    return wi, wo, len(view_cosines), N_THETA * N_PHI, azimuths
+
+
+@functools.lru_cache(maxsize=8)
+def mirror_nodes(view_cosines: tuple) -> mi.Vector3d:
+    """The nodes' directions of :func:`mirror_quadrature` for each view cosine, K M float64
+    values view-major, in one kernel (in numpy, with their turns, they were a tenth of a new
+    scene's lobe fits)."""
+    theta, _, phi = _polar_nodes(N_THETA, N_PHI)
+    frames = np.stack([np.stack(_axis_frame(mirror_direction(view_direction(c)))) for c in view_cosines])  # (K, 3, 3)
+    u32, f64 = mi.UInt32, mi.Float64
+    lane = dr.arange(u32, len(view_cosines) * N_THETA * N_PHI)
+    view, node = lane // (N_THETA * N_PHI), lane % (N_THETA * N_PHI)
+    ring, azimuth = node // N_PHI, node % N_PHI
+
+    def at(values, index):
+        return dr.gather(f64, device_array(f64, values), index)
+
+    cos_t, sin_t = at(np.cos(theta), ring), at(np.sin(theta), ring)
+    cos_p, sin_p = at(np.cos(phi), azimuth), at(np.sin(phi), azimuth)
+    e = [mi.Vector3d(*(at(frames[:, i, a], view) for a in range(3))) for i in range(3)]
+    nodes = cos_t * e[2] + (sin_t * cos_p) * e[0] + (sin_t * sin_p) * e[1]
+    dr.eval(nodes)
+    return nodes
 
 
 def _turned_directions(view_cosines: np.ndarray, light_directions: np.ndarray, back_side: bool,
@@ -273,14 +316,14 @@ class TwoLobeFit:
 def fit_two_lobe(g: np.ndarray, quadrature: LobeQuadrature) -> TwoLobeFit:
     """Fit (w_d, w_g, s) of the diffuse + Phong proxy to one tabulated lobe: :func:`fit_two_lobes`
     for one lobe ``g`` (M,) on ``quadrature`` (a :func:`mirror_quadrature`)."""
-    return fit_two_lobes(np.asarray(g, dtype=np.float64)[None, :], [quadrature], np.array([0]))[0]
+    return fit_two_lobes(np.asarray(g, dtype=np.float64)[None, :], (float(quadrature.axis[2]),), np.array([0]))[0]
 
 
-def fit_two_lobes(g, quadratures: list, views: np.ndarray) -> list[TwoLobeFit]:
+def fit_two_lobes(g, view_cosines: tuple, views: np.ndarray) -> list[TwoLobeFit]:
     """Fit (w_d, w_g, s) of the diffuse + Phong proxy to F tabulated lobes at once.
 
     ``g``: the lobes, (F, M) numpy or F M values on the device, lobe f on the nodes of
-    ``quadratures[views[f]]`` (made by :func:`mirror_quadrature`: their axis is the Phong axis).
+    ``mirror_quadrature(view_cosines[views[f]])`` (their axis is the Phong axis).
 
     Coarse grid search over ``PHONG_EXPONENTS`` x ``DIFFUSE_FRACTIONS``, then one finer
     search around the best pair. The coarse grid is screened on a quarter of the nodes
@@ -292,7 +335,7 @@ def fit_two_lobes(g, quadratures: list, views: np.ndarray) -> list[TwoLobeFit]:
     took 0.2-0.3 s of a new scene's set-up for its 176 fits; docs/MEASUREMENTS.md.)
     Returns all-zero weights for a lobe that carries no energy.
     """
-    tables = _FitTables.of(quadratures)
+    tables = _FitTables.of(tuple(float(c) for c in view_cosines))
     count = len(views)
     g = device_array(mi.Float, g) if isinstance(g, np.ndarray) else mi.Float(g)
     views = np.asarray(views, dtype=np.uint32)
@@ -353,32 +396,33 @@ class _FitTables:
     """What every fit on the same view elevations shares, on the device: the nodes' weights
     (float32, and float64 for the energy), the diffuse lobe per view (max(z, 0) / pi), the
     Phong lobe of every :data:`FINE_EXPONENTS` value at every node (float32, computed in
-    float64) and the screen's node indices. Made once per set of quadratures (kept with them)."""
+    float64) and the screen's node indices. Made once per set of view elevations."""
 
     _made: dict = {}
     MADE_ENTRIES = 8
 
-    def __init__(self, quadratures: list):
-        self.quadratures = list(quadratures)  # alive while their ids key the tables
-        first = quadratures[0]
-        self.nodes = len(first.weights)
-        self.weights64 = device_array(mi.Float64, first.weights)
-        self.weights = device_array(mi.Float, first.weights)
-        self.diffuse = device_array(mi.Float, np.stack([np.maximum(q.directions[:, 2], 0.0) / math.pi
-                                                        for q in quadratures]))
+    def __init__(self, view_cosines: tuple):
+        _, w_theta, _ = _polar_nodes(N_THETA, N_PHI)
+        weights = np.repeat(w_theta[:, None], N_PHI, 1).reshape(-1) * (2.0 * math.pi / N_PHI)  # as a quadrature's
+        self.nodes = len(weights)
+        self.weights64 = device_array(mi.Float64, weights)
+        self.weights = device_array(mi.Float, weights)
+        self.diffuse = mi.Float(dr.maximum(mirror_nodes(view_cosines).z, 0.0) / math.pi)
+        dr.eval(self.diffuse)
         self.phong = _phong_table()
-        screen = np.flatnonzero(first.screen).astype(np.uint32)
+        screen = np.zeros((N_THETA, N_PHI), dtype=bool)
+        screen[::SCREEN_STRIDE, ::SCREEN_STRIDE] = True
+        screen = np.flatnonzero(screen).astype(np.uint32)
         self.screen = device_array(mi.UInt32, screen)
         self.screen_nodes = len(screen)
 
     @classmethod
-    def of(cls, quadratures: list) -> "_FitTables":
-        key = tuple(id(q) for q in quadratures)
-        tables = cls._made.get(key)
+    def of(cls, view_cosines: tuple) -> "_FitTables":
+        tables = cls._made.get(view_cosines)
         if tables is None:
             if len(cls._made) >= cls.MADE_ENTRIES:
                 cls._made.pop(next(iter(cls._made)))
-            tables = cls._made[key] = cls(quadratures)
+            tables = cls._made[view_cosines] = cls(view_cosines)
         return tables
 
 
@@ -387,7 +431,8 @@ def _phong_table() -> mi.Float:
     """The normalised Phong lobe of each :data:`FINE_EXPONENTS` value (rows, in its flat order)
     at each node of the fitting quadrature (columns): float64 math, stored as float32, as the
     numpy search computed it. The nodes' angle to the axis is the same for every elevation."""
-    cos_to_axis = mirror_quadrature(1.0).cos_to_axis
+    theta, _, _ = _polar_nodes(N_THETA, N_PHI)
+    cos_to_axis = np.repeat(np.cos(theta)[:, None], N_PHI, 1).reshape(-1)  # as a quadrature's
     return device_array(mi.Float, phong_lobe(cos_to_axis[None, :], FINE_EXPONENTS.reshape(-1, 1)))
 
 

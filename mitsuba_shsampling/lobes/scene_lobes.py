@@ -35,7 +35,7 @@ from ..scene_materials import registry_id
 from ..sh.basis import MAX_ORDER
 from ..sh.zonal import RotatedZonalLobes, clamped_cosine_attenuation, phong_attenuation, rotate_zonal_lobes
 from ..warp.proxy_lobe import ProxyLobe
-from .fit import fit_two_lobes, mean_mirror_lobe, mirror_quadrature, uv_positions, varies_over_surface
+from .fit import fit_two_lobes, mean_mirror_lobe, uv_positions, varies_over_surface
 from ..traversal import content_parts
 from .perturbed_frames import FRAME_WRAPPERS, PerturbedNormal, nested_bsdf
 
@@ -278,13 +278,12 @@ class SceneLobes:
         params = np.zeros((2, self.view_nodes, 3))
         params[..., 2] = 1.0
         anisotropic = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Anisotropic)
-        quadratures = [mirror_quadrature(c) for c in self.view_cosines]
         sides = [False, True] if mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide) else [False]
         # Every side and view node in one search (a kernel a stage).
         g = [mean_mirror_lobe(bsdf, self.view_cosines, uvs, back_side=back,
                               azimuths=ANISOTROPIC_AZIMUTHS if anisotropic else 1) for back in sides]
         views = np.tile(np.arange(self.view_nodes), len(sides))
-        fits = fit_two_lobes(g[0] if len(g) == 1 else dr.concat(g), quadratures, views)
+        fits = fit_two_lobes(g[0] if len(g) == 1 else dr.concat(g), tuple(self.view_cosines), views)
         for index, fit in enumerate(fits):
             params[index // self.view_nodes, index % self.view_nodes] = (fit.diffuse_weight, fit.glossy_weight,
                                                                          fit.exponent)
