@@ -312,6 +312,20 @@ def test_the_shared_state_lets_a_scene_go_with_its_last_integrator_object():
     assert sys.getrefcount(scene) == before
 
 
+def test_two_objects_with_equal_options_on_two_scenes_keep_each_its_scenes_state():
+    """A training and a validation scene, or two optimisations in one process: objects with
+    equal options share a scene's state, and one on another scene does not rebuild it."""
+    first_scene, second_scene = scene_of(("ggx",)), scene_of(("diffuse", "ggx"))
+    first, second = sh_direct(), sh_direct()
+    first_state, second_state = first.scenes.get(first_scene), second.scenes.get(second_scene)
+    assert first_state is not second_state
+    for _ in range(2):
+        assert first.scenes.get(first_scene) is first_state and second.scenes.get(second_scene) is second_state
+    assert sh_direct().scenes.get(second_scene) is second_state  # a third object: the state made for it
+    moved = first.scenes.get(second_scene)  # an object that moves to the other scene takes its state
+    assert moved is second_state
+
+
 def planned_then_changed(monkeypatch, key, value):
     """Plan a scene, then set its parameter ``key`` to ``value(old)`` and plan again:
     (the lobe fits, the pyramid builds) that the second plan ran."""

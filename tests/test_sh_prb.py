@@ -409,6 +409,27 @@ def test_planning_again_outside_the_frozen_step_rebuilds_its_state_and_records_a
     assert frozen[-1] < 0.6
 
 
+def test_frozen_steps_of_two_objects_with_equal_options_on_two_scenes_replay_without_rebuilding(envmaps_dir):
+    """Two optimisations in one process (equal options, two scenes), their frozen steps in
+    turn: each replays its own scene's state (before, the second plan took the first's
+    place, and the first scene's next frozen step was a FrozenBeforePlanError)."""
+    scenes = [gradient_scene(envmaps_dir), gradient_scene(envmaps_dir)]
+    integrators = [sh_prb(), sh_prb()]
+
+    @mitsuba_shsampling.freeze
+    def step(scene, integrator, seed):
+        return mi.render(scene, integrator=integrator, spp=1, seed=seed)
+
+    for integrator, scene in zip(integrators, scenes):
+        integrator.plan(scene)
+    states = [integrator.scenes.get(scene, stale_ok=True) for integrator, scene in zip(integrators, scenes)]
+    assert states[0] is not states[1]
+    for k in range(3):
+        for integrator, scene, state in zip(integrators, scenes, states):
+            dr.eval(step(scene, integrator, dr.opaque(mi.UInt32, k)))
+            assert integrator.scenes.get(scene, stale_ok=True) is state
+
+
 def first_frozen_render_error(freeze, scene, integrator):
     """The chain of errors (outermost first) that a one-pass render frozen by ``freeze`` raises."""
     @freeze

@@ -663,6 +663,11 @@ class SceneCache:
         self._key, self._held = None, []
         self._traversed: list[mi.SceneParameters] = []
 
+    @property
+    def scene(self) -> mi.Scene | None:
+        """The scene of the state held (None before the first :meth:`get`)."""
+        return self._scene
+
     def get(self, scene: mi.Scene, stale_ok: bool = False, tolerance: float = 0.0):
         """The state ``build`` made for ``scene``, built again when its inputs changed;
         with ``stale_ok`` only for another scene (the inputs are not even read); with a

@@ -10,7 +10,7 @@ from .environment import ProductEnvironment
 from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, emitter_nee, first_hit, product_nee,
                          selected_emitter_nee)
 from .options import DirectOptions, document_parameters
-from .sharing import plan, planned_render, shared_planning
+from .sharing import SceneSlot, plan, planned_render, shared_planning
 
 
 @document_parameters(DirectOptions)
@@ -60,7 +60,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
             options, (carry_all,), lambda scene: ProductEnvironment(scene, options, carry_all),
             lambda: StrategyChooser(options.emitter_samples, options.bsdf_samples, "direct", options.plan,
                                     options.plan_file))
-        self.scenes, self.chooser = self.shared.scenes, self.shared.chooser
+        self.scenes, self.chooser = SceneSlot(self.shared), self.shared.chooser
 
     def prepare_scene(self, scene, sensor=0):
         """What :meth:`render` does on the host before it traces a pass: build (or

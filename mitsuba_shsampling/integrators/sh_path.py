@@ -9,7 +9,7 @@ from .chooser import StrategyChooser
 from .environment import ProductEnvironment
 from .options import PathOptions, document_parameters
 from .path_loop import PathSettings, trace_paths
-from .sharing import plan, planned_render, shared_planning
+from .sharing import SceneSlot, plan, planned_render, shared_planning
 
 
 @document_parameters(PathOptions)
@@ -50,7 +50,7 @@ class SHPathIntegrator(mi.SamplingIntegrator):
         self.shared = shared_planning(
             options, (), lambda scene: ProductEnvironment(scene, options),
             lambda: StrategyChooser(1, 1, "path", options.plan, options.plan_file))
-        self.scenes, self.chooser = self.shared.scenes, self.shared.chooser
+        self.scenes, self.chooser = SceneSlot(self.shared), self.shared.chooser
 
     def prepare_scene(self, scene, sensor=0):
         """The host-side work before a pass: state and choice (see ``sh_direct``'s)."""

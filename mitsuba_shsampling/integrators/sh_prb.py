@@ -9,7 +9,7 @@ from .chooser import StrategyChooser
 from .environment import ProductEnvironment
 from .options import PRBOptions, document_parameters
 from .path_loop import PathSettings, trace_paths
-from .sharing import plan, planned_render, shared_planning
+from .sharing import SceneSlot, plan, planned_render, shared_planning
 
 # Mitsuba's base of the replay integrators (primal pass, then the same paths again with adjoint
 # radiance); bound to the variant active when this module runs, like the class below.
@@ -88,7 +88,7 @@ class SHPRBIntegrator(RBIntegrator):
         # One environment sample and one BSDF sample per vertex, as in sh_path.
         self.shared = shared_planning(
             options, (), build, lambda: StrategyChooser(1, 1, "path", options.plan, options.plan_file))
-        self.scenes, self.chooser = self.shared.scenes, self.shared.chooser
+        self.scenes, self.chooser = SceneSlot(self.shared), self.shared.chooser
         self._state, self._renders_since_check = None, 0
 
     # The per-scene state is built on the host before a pass is traced. A primal

@@ -2,9 +2,11 @@
 
 A user who makes a second integrator object for a scene (a notebook cell run again,
 a comparison script, ``mi.load_dict`` inside a loop) pays no second set-up: objects
-of one plugin with equal options get one :class:`~.environment.SceneCache` and one
-:class:`~.chooser.StrategyChooser`, so the state built and the plan made for a scene
-by one of them are the other's.
+of one plugin with equal options share one :class:`~.environment.SceneCache` per scene
+they render and one :class:`~.chooser.StrategyChooser`, so the state built and the plan
+made for a scene by one of them are the other's. Two such objects on two scenes (a
+training and a validation scene, two optimisations in one process) each keep their own
+scene's state: they do not rebuild each other's (:class:`SceneSlot`).
 
 The table holds its entries weakly: an entry lives as long as one of its objects
 does. A state holds its scene's objects (the emitter, the BSDFs), so a table that
@@ -33,13 +35,44 @@ from .emitter_selection import DESIGNS
 from .environment import SceneCache
 
 class SharedPlanning:
-    """The scene cache and the planner of one option set; every integrator object of
-    that set holds it (which keeps it in the table)."""
+    """The per-scene caches and the planner of one option set; every integrator object of
+    that set holds it (which keeps it in the table). ``by_scene`` finds the cache of a scene
+    that some object of the set renders (weakly: a cache lives while an object holds it,
+    and it holds its scene)."""
 
-    __slots__ = ("scenes", "chooser", "__weakref__")
+    __slots__ = ("build", "by_scene", "chooser", "__weakref__")
 
-    def __init__(self, scenes: SceneCache, chooser: StrategyChooser):
-        self.scenes, self.chooser = scenes, chooser
+    def __init__(self, build: Callable[[mi.Scene], object], chooser: StrategyChooser):
+        self.build, self.chooser = build, chooser
+        self.by_scene: "weakref.WeakValueDictionary[int, SceneCache]" = weakref.WeakValueDictionary()
+
+
+class SceneSlot:
+    """An integrator object's ``scenes``: the state of the scene it renders, from the cache
+    of its option set that holds that scene (another object's, or a new one). The object
+    holds its current scene's cache, and nothing more: a scene it moves away from lives on
+    only while another object renders it (a state holds its scene's emitters and BSDFs,
+    which a later virtual call would trace; see the module docstring)."""
+
+    __slots__ = ("_shared", "_cache")
+
+    def __init__(self, shared: SharedPlanning):
+        self._shared, self._cache = shared, None
+
+    def get(self, scene: mi.Scene, stale_ok: bool = False, tolerance: float = 0.0):
+        """:meth:`.SceneCache.get` of the cache that holds ``scene``."""
+        cache = self._cache
+        if cache is None or cache.scene is not scene:
+            found = self._shared.by_scene.get(id(scene))
+            cache = found if found is not None and found.scene is scene else SceneCache(self._shared.build)
+        state = cache.get(scene, stale_ok, tolerance)  # inside a recording: FrozenBeforePlanError for a new one
+        # The previous scene's cache goes unless another object holds it.
+        self._cache = self._shared.by_scene[id(scene)] = cache
+        return state
+
+    def motion(self) -> float:
+        """:meth:`.SceneCache.motion` of the scene this object renders."""
+        return self._cache.motion()
 
 
 _shared: "weakref.WeakValueDictionary[tuple, SharedPlanning]" = weakref.WeakValueDictionary()
@@ -53,7 +86,7 @@ def shared_planning(options, extra: tuple, build: Callable[[mi.Scene], object],
     key = (type(options), options, extra, mi.variant())
     entry = _shared.get(key)
     if entry is None:
-        entry = _shared[key] = SharedPlanning(SceneCache(build), chooser())
+        entry = _shared[key] = SharedPlanning(build, chooser())
     return entry
 
 
