@@ -61,8 +61,7 @@ REFERENCES = {  # name -> (plugin, the envmap's own mis_compensation, plan every
 
 def methods(plan_every: list) -> dict:
     """``sh_prb`` once per ``--plan-every`` value (its ``rebuild_interval`` the same: for the
-    traced renders it is what the plan calls are for the frozen steps, and integrator objects with
-    the same options share one per-scene state, which holds one scene at a time), then Mitsuba's two."""
+    traced renders it is what the plan calls are for the frozen steps), then Mitsuba's two."""
     ours = {f"sh_prb (plan every {n})" if len(plan_every) > 1 else "sh_prb":
             ({"type": "sh_prb", "rebuild_interval": n}, False, n) for n in plan_every}
     return {**ours, **REFERENCES}

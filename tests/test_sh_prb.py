@@ -145,6 +145,7 @@ def test_defaults_are_prbs():
     ("defensive_share", 0.0, "must be in (0, 1]"),
     ("strategy", "product_only", "must be one of"),  # the BSDF sample always runs, as in sh_path
     ("rebuild_tolerance", -0.1, "must be >= 0"),
+    ("plan_for", "loss", "must be 'image' or 'gradients'"),
 ])
 def test_a_bad_parameter_raises_an_option_error_naming_sh_prb(name, value, requirement):
     with pytest.raises(OptionError, match=f"sh_prb: parameter '{name}' " + requirement.replace("(", r"\(")
@@ -428,6 +429,39 @@ def test_frozen_steps_of_two_objects_with_equal_options_on_two_scenes_replay_wit
         for integrator, scene, state in zip(integrators, scenes, states):
             dr.eval(step(scene, integrator, dr.opaque(mi.UInt32, k)))
             assert integrator.scenes.get(scene, stale_ok=True) is state
+
+
+def test_a_plan_for_the_gradients_weighs_the_candidates_on_the_unknowns_and_leaves_their_gradients_as_they_were(
+        envmaps_dir):
+    """plan_for gradients: after the image's plan, the plan itself, every material on
+    environment and every material on product are weighed by the unknowns' gradient
+    variance x predicted time; the candidate kept runs, is reported, and the unknown's own
+    gradient is what it was before."""
+    scene = gradient_scene(envmaps_dir)
+    params = mi.traverse(scene)
+    alpha = mi.Float(params[CONDUCTOR_ALPHA])
+    dr.enable_grad(alpha)
+    params[CONDUCTOR_ALPHA] = alpha
+    params.update()
+    dr.set_grad(alpha, 0.25)
+    integrator = sh_prb(plan_for="gradients")
+    choice = integrator.plan(scene)
+    plan = choice.gradient_plan
+    assert plan["unknowns"] == [CONDUCTOR_ALPHA]
+    assert set(plan["scores"]) <= {"plan", "environment", "product"} and len(plan["scores"]) >= 2
+    assert plan["kept"] == min(plan["scores"], key=plan["scores"].get)
+    assert all(np.isfinite(v) and v > 0 for v in plan["scores"].values())
+    assert "for the gradients" in choice.summary()
+    assert dr.grad(alpha)[0] == pytest.approx(0.25)
+    uses_product = any(m.strategy.uses_product for m in choice.materials)
+    assert uses_product == (plan["kept"] == "product" or (plan["kept"] == "plan" and not choice.lean))
+
+
+def test_the_image_plan_is_the_default_and_a_scene_without_unknowns_gets_no_plan_for_the_gradients(envmaps_dir):
+    scene = gradient_scene(envmaps_dir)
+    assert sh_prb().options.plan_for == "image"
+    assert sh_prb().plan(scene).gradient_plan == {}
+    assert sh_prb(plan_for="gradients").plan(scene).gradient_plan == {}  # no parameter has a gradient
 
 
 def first_frozen_render_error(freeze, scene, integrator):

@@ -144,6 +144,9 @@ class StrategyChoice:
     confirmation_time: dict = dataclasses.field(default_factory=dict)
     """``plan`` ``measure``, where :func:`confirm_by_timing` ran: ``confirm 0`` (the model's
     pick), ``confirm 1`` ... (its close rivals) -> pass time (s) of each, timed as a whole."""
+    gradient_plan: dict = dataclasses.field(default_factory=dict)
+    """``sh_prb``'s plan for the gradients (:mod:`.gradient_plan`): the candidate kept and each
+    candidate's score (relative gradient variance x predicted pass time); empty where none ran."""
     emitter_selection: dict = dataclasses.field(default_factory=dict)
     """``sh_direct``'s ``emitter_selection`` ``auto`` in a scene with other emitters: the
     design chosen and what it was weighed with (:class:`~.emitter_selection.SelectionPrice`
@@ -155,6 +158,7 @@ class StrategyChoice:
                 "cosine_tables": list(self.cosine_tables), "bsdf_shares": list(self.bsdf_shares),
                 "pass_time_s": dict(self.pass_time), "confirmation_time_s": dict(self.confirmation_time),
                 "emitter_selection": dict(self.emitter_selection),
+                "gradient_plan": dict(self.gradient_plan),
                 "shared_variance": self.shared_variance,
                 "calibration": {s.label: f for s, f in (self.pilots.calibration if self.pilots else {}).items()},
                 "pilot_variance": {k: {"predicted": p, "measured": m} for k, (p, m) in self.pilot_variance.items()},
@@ -188,6 +192,10 @@ def summary_of(choice: dict) -> str:
         shared = min(choice["shared_variance"] / environment["measured"], 1.0)
         head += f" ({shared:.0%} of the film's variance shared by every strategy)"
     selection = selection_summary(choice.get("emitter_selection", {}))
+    gradients = choice.get("gradient_plan", {})
+    if gradients:
+        head = (f"for the gradients: {gradients['kept']} (variance x time: "
+                + ", ".join(f"{name} {score:.3g}" for name, score in gradients["scores"].items()) + "); " + head)
     return f"{head}; " + ", ".join(parts) + (f"; {selection}" if selection else "")
 
 

@@ -389,8 +389,20 @@ class PRBOptions(PathOptions):
         "next render or plan: late in an optimisation, when the parameters settle, nothing is "
         "rebuilt. A changed transform or flag always rebuilds. >= 0; 0: any change rebuilds."))
 
+    plan_for: str = dataclasses.field(default="image", metadata=_doc(
+        "What the plan (``strategy`` ``auto``) minimises: ``image`` (default), the primal image's "
+        "variance at equal time, as ``sh_path``'s; ``gradients``, the variance of the gradients of "
+        "the parameters whose gradients are enabled when the plan is made (an optimisation's "
+        "unknowns): the plan, every material on ``environment`` and every material on ``product`` "
+        "weighed by a few primal and replay passes at fixed seeds, 1.5-3.5 s once per scene "
+        "(integrators/gradient_plan.py). Measured on three inverse problems at equal time it was "
+        "within -10 % to +8 % of ``image``'s plan (scripts/bench_gradient_plans.py), so it is not "
+        "the default. A strategy set by ``strategy`` is kept as set."))
+
     def _check_ranges(self) -> None:
         super()._check_ranges()
+        if self.plan_for not in ("image", "gradients"):
+            self._fail("plan_for", "must be 'image' or 'gradients'", self.plan_for)
         if self.rebuild_interval < 1:
             self._fail("rebuild_interval", "must be >= 1", self.rebuild_interval)
         if not self.rebuild_tolerance >= 0.0:

@@ -7,6 +7,7 @@ import mitsuba as mi
 
 from .chooser import StrategyChooser
 from .environment import ProductEnvironment
+from .gradient_plan import plan_for_gradients
 from .options import PRBOptions, document_parameters
 from .path_loop import PathSettings, trace_paths
 from .sharing import SceneSlot, plan, planned_render, shared_planning
@@ -110,7 +111,12 @@ class SHPRBIntegrator(RBIntegrator):
         def pilot_pass(pilot_spp, pilot_seed):
             return super(SHPRBIntegrator, self).render(scene, sensor, pilot_seed, pilot_spp)
 
+        # The product's warps as built: the plan may drop them, and the plan for the
+        # gradients weighs the product again.
+        warps = (state.warp, state.warp_plain) if state.awaits_choice else None
         self.chooser.before_render(state, scene, sensor, pilot_pass, self)
+        if warps is not None:
+            plan_for_gradients(self, state, scene, sensor, warps)
         return state
 
     render = planned_render(RBIntegrator)
