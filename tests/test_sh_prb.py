@@ -457,6 +457,25 @@ def test_a_plan_for_the_gradients_weighs_the_candidates_on_the_unknowns_and_leav
     assert uses_product == (plan["kept"] == "product" or (plan["kept"] == "plan" and not choice.lean))
 
 
+def test_after_a_plan_for_the_gradients_the_optimisers_unknowns_still_get_their_gradients(envmaps_dir):
+    """The gradient pilots must leave the scene wired to the optimiser's values: an envmap's
+    texels (which the emitter copies) and a roughness still receive nonzero gradients from the
+    next step. (Taking the unknowns out of the scene and putting them back cut that wire: the
+    texels' gradients were 0 from then on.)"""
+    scene = gradient_scene(envmaps_dir)
+    params = mi.traverse(scene)
+    texels = next(k for k in params.keys() if k.endswith(".data") and "EnvironmentMap" in params.properties[k][2].class_name())
+    opt = mi.ad.Adam(lr=0.0, params={CONDUCTOR_ALPHA: params[CONDUCTOR_ALPHA], texels: params[texels]})
+    params.update(opt)
+    integrator = sh_prb(plan_for="gradients")
+    assert integrator.plan(scene).gradient_plan["unknowns"] == sorted([CONDUCTOR_ALPHA, texels])
+    image = mi.render(scene, params, integrator=integrator, spp=4, seed=3)
+    dr.backward(dr.mean(dr.square(image), axis=None))
+    for key in (CONDUCTOR_ALPHA, texels):
+        grad = np.asarray(dr.grad(opt[key]).numpy())
+        assert np.all(np.isfinite(grad)) and np.abs(grad).sum() > 0, key
+
+
 def test_the_image_plan_is_the_default_and_a_scene_without_unknowns_gets_no_plan_for_the_gradients(envmaps_dir):
     scene = gradient_scene(envmaps_dir)
     assert sh_prb().options.plan_for == "image"
