@@ -14,7 +14,9 @@ runs, as Dr.Jit looks up a compiled kernel by its source:
   so an edited build function never reads an older one's arrays): a fresh process on
   a scene rendered before skips the builds, as it skips the compilation of the
   kernels. Files are written in a thread of their own, off the set-up's path
-  (:func:`flush` waits for them; so does the interpreter at exit).
+  (:func:`flush` waits for them; so does the interpreter at exit). The folder is bounded
+  (:func:`prune`): :data:`MAX_FOLDER_BYTES` for this version, least recently used first, and
+  :data:`KEPT_VERSIONS` folders of other versions.
 
 ``SHSAMPLING_CACHE_DIR`` names another folder; ``SHSAMPLING_CACHE_DIR=off`` keeps
 builds in the process only, and so does :func:`kept_in_process` for the builds made
@@ -29,6 +31,8 @@ import contextlib
 import hashlib
 import json
 import os
+import re
+import shutil
 import tempfile
 import threading
 import warnings
@@ -44,6 +48,22 @@ ENVIRONMENT_VARIABLE = "SHSAMPLING_CACHE_DIR"
 IN_PROCESS_ENTRIES = 64
 """Builds kept in the process (the least recently used goes first)."""
 
+MAX_FOLDER_BYTES = 2 * 2**30
+"""This package version's builds kept on disk at most; beyond it the least recently used
+files go (down to :data:`PRUNED_SHARE` of it). A 1k map's two pyramids are ~80 MB, a scene's
+cosine tables ~20 MB a map."""
+
+PRUNED_SHARE = 0.8
+"""What a pruning of this version's folder leaves of :data:`MAX_FOLDER_BYTES`."""
+
+KEPT_VERSIONS = 2
+"""Folders of other package versions (other code digests) kept beside this one's, the most
+recently used; older ones are deleted. (Every edit of the code is a version: a developer's
+cache folder held 70 of them, 9.4 GB, before this bound.)"""
+
+_DIGEST_NAME = re.compile(r"^[0-9a-f]{16}$")
+"""A version folder's name (:func:`code_digest`): only such folders are ever deleted."""
+
 #: A build's result: names -> numpy arrays or JSON values (numbers, strings, lists).
 Record = dict
 
@@ -56,6 +76,8 @@ _in_process_only = 0
 #: ``.npz`` is 10-40 MB, 20-50 ms to write); the interpreter waits for them at exit.
 _writer: ThreadPoolExecutor | None = None
 _pending: list[Future] = []
+#: The cache folder was pruned in this process (:func:`prune`, once, before the first write).
+_pruned = False
 
 
 @contextlib.contextmanager
@@ -146,10 +168,14 @@ def cached_build(kind: str, key: str, build: Callable[[], Record]) -> Record:
 def _write_later(path: str, record: Record) -> None:
     """:func:`_write` in the writer thread (the record's arrays are never written to after a build)."""
     global _writer
+    global _pruned
     with _memory_lock:
         if _writer is None:
             _writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="shsampling-build-cache")
         _pending[:] = [f for f in _pending if not f.done()]
+        if not _pruned:
+            _pruned = True
+            _pending.append(_writer.submit(prune, cache_folder()))
         _pending.append(_writer.submit(_write, path, record))
 
 
@@ -172,9 +198,50 @@ def _read(path: str) -> Record | None:
     try:
         with np.load(path, allow_pickle=False) as stored:
             values = json.loads(str(stored["__values__"]))
-            return {**{k: stored[k] for k in stored.files if k != "__values__"}, **values}
+            record = {**{k: stored[k] for k in stored.files if k != "__values__"}, **values}
     except Exception:  # a truncated or foreign file: build again (and overwrite it)
         return None
+    with contextlib.suppress(OSError):
+        os.utime(path)  # used now: the last to go when the folder is pruned
+    return record
+
+
+def prune(folder: str | None) -> None:
+    """Bound the disk cache: delete the folders of other package versions beyond the
+    :data:`KEPT_VERSIONS` most recently used (only folders named like a code digest), and
+    this version's least recently used files beyond :data:`MAX_FOLDER_BYTES`. Errors (a
+    folder another process is pruning) are ignored: a missing file is built again."""
+    if folder is None or not os.path.isdir(os.path.dirname(folder)):
+        return
+    root, own = os.path.split(folder)
+
+    def last_used(path: str) -> float:
+        times = [os.path.getmtime(path)]
+        with contextlib.suppress(OSError), os.scandir(path) as entries:
+            times += [e.stat().st_mtime for e in entries]
+        return max(times)
+
+    with contextlib.suppress(OSError):
+        others = [os.path.join(root, name) for name in os.listdir(root)
+                  if name != own and _DIGEST_NAME.match(name) and os.path.isdir(os.path.join(root, name))]
+        for old in sorted(others, key=last_used, reverse=True)[KEPT_VERSIONS:]:
+            shutil.rmtree(old, ignore_errors=True)
+    files = []
+    for here, _, names in os.walk(folder):
+        for name in names:
+            path = os.path.join(here, name)
+            with contextlib.suppress(OSError):
+                info = os.stat(path)
+                files.append((info.st_mtime, info.st_size, path))
+    total = sum(size for _, size, _ in files)
+    if total <= MAX_FOLDER_BYTES:
+        return
+    for _, size, path in sorted(files):
+        if total <= PRUNED_SHARE * MAX_FOLDER_BYTES:
+            break
+        with contextlib.suppress(OSError):
+            os.remove(path)
+            total -= size
 
 
 def _write(path: str, record: Record) -> None:

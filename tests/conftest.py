@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -11,7 +13,10 @@ import pytest
 
 # The suite's build cache and plans live in a folder of its own, made fresh for each run:
 # no test reads what an earlier run (or the user's renders) left in the user's cache.
+# Removed when the run ends (each of pytest-xdist's workers makes and removes its own): a run
+# writes a few hundred MB there.
 os.environ["SHSAMPLING_CACHE_DIR"] = tempfile.mkdtemp(prefix="shsampling-tests-")
+atexit.register(shutil.rmtree, os.environ["SHSAMPLING_CACHE_DIR"], ignore_errors=True)
 
 # Import the package first: it points Dr.Jit at a libLLVM >= 16 before drjit
 # loads one itself (see mitsuba_shsampling/_backend.py).

@@ -1,0 +1,56 @@
+"""Specification: the disk cache of builds is bounded. Folders of other package versions beyond
+the most recently used few are deleted (only folders named like a version), and this version's
+least recently used files go once it holds more than its bound; a build read back counts as used."""
+
+import os
+import time
+
+import numpy as np
+
+from mitsuba_shsampling import build_cache
+
+
+def touch(path, size=10, age=0.0):
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "wb") as f:
+        f.write(b"x" * size)
+    stamp = time.time() - age
+    os.utime(path, (stamp, stamp))
+    os.utime(os.path.dirname(path), (stamp, stamp))
+
+
+def test_other_versions_beyond_the_most_recently_used_are_deleted_and_foreign_folders_kept(tmp_path):
+    own = tmp_path / "0123456789abcdef"
+    touch(str(own / "pyramid" / "a.npz"))
+    versions = [f"{k:016x}" for k in range(1, 5)]
+    for age, name in enumerate(versions):  # versions[0] the most recently used
+        touch(str(tmp_path / name / "pyramid" / "b.npz"), age=100.0 * (age + 1))
+        os.utime(tmp_path / name, (time.time() - 100.0 * (age + 1),) * 2)
+    touch(str(tmp_path / "my_renders" / "keep.exr"), age=1e6)
+    build_cache.prune(str(own))
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == sorted(["0123456789abcdef", "my_renders"] + versions[:build_cache.KEPT_VERSIONS])
+
+
+def test_this_versions_least_recently_used_files_go_beyond_its_bound(tmp_path, monkeypatch):
+    monkeypatch.setattr(build_cache, "MAX_FOLDER_BYTES", 1000)
+    own = tmp_path / "0123456789abcdef"
+    for k in range(6):  # 6 x 300 bytes, file 0 the oldest
+        touch(str(own / "pyramid" / f"{k}.npz"), size=300, age=100.0 * (6 - k))
+    build_cache.prune(str(own))
+    left = sorted(p.name for p in (own / "pyramid").iterdir())
+    assert left == ["4.npz", "5.npz"]  # 600 bytes <= 0.8 x 1000; the newest kept
+    assert sum(p.stat().st_size for p in (own / "pyramid").iterdir()) <= build_cache.PRUNED_SHARE * 1000
+
+
+def test_a_build_read_back_counts_as_used(tmp_path, monkeypatch):
+    monkeypatch.setenv(build_cache.ENVIRONMENT_VARIABLE, str(tmp_path))
+    build_cache.clear_in_process()
+    build_cache.cached_build("test", "key", lambda: {"values": np.arange(3.0)})
+    build_cache.flush()
+    path = os.path.join(build_cache.cache_folder(), "test", "key.npz")
+    os.utime(path, (1.0, 1.0))
+    build_cache.clear_in_process()
+    record = build_cache.cached_build("test", "key", lambda: {"values": np.zeros(3)})
+    assert np.array_equal(record["values"], np.arange(3.0))  # read, not built
+    assert os.path.getmtime(path) > time.time() - 60
