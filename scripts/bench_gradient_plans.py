@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import os
 import sys
 
@@ -111,17 +110,9 @@ def measure(task_name: str, point: str, args) -> dict:
     path = mi.load_dict({"type": "path", "max_depth": 6, "hide_emitters": task.hide_emitters})
     target = np.mean([np.array(mi.render(truth_scene, integrator=path, spp=1024, seed=k))
                       for k in range(args.target_spp // 1024)], axis=0)
-    context = multiprocessing.get_context("spawn")
-    runs = {}
-    for name, method in METHODS.items():
-        here, there = context.Pipe()
-        process = context.Process(target=worker, args=(there, task_name, method, point, target, args))
-        process.start()
-        runs[name] = dict(conn=here, process=process, seconds=[], grads={n: [] for n in names})
-    try:
-        for run in runs.values():
-            if run["conn"].recv() != "ready":
-                raise RuntimeError("a worker failed to start")
+    runs = {name: dict(seconds=[], grads={n: [] for n in names}) for name in METHODS}
+    workers = {name: (task_name, method, point, target, args) for name, method in METHODS.items()}
+    with inverse.worker_processes(worker, workers, runs):
         for k in range(args.samples):
             for run in runs.values():  # interleaved: one step of each method in turn
                 run["conn"].send(k)
@@ -132,11 +123,6 @@ def measure(task_name: str, point: str, args) -> dict:
         for run in runs.values():
             run["conn"].send("done")
             run["plan"] = run["conn"].recv()
-    finally:
-        for run in runs.values():
-            run["process"].join(timeout=60)
-            if run["process"].is_alive():
-                run["process"].kill()
     pooled = {n: np.mean([np.mean(run["grads"][n], axis=0) for run in runs.values()], axis=0) for n in names}
     # Per unknown, the weighted variance over every method's mean (each unknown counts alike
     # whatever its scale: at the truth an unknown's mean gradient is near 0, and its variance

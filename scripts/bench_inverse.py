@@ -33,6 +33,7 @@ parameters, so that most of their noise cancels, and the task's parameter error.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import multiprocessing
@@ -282,6 +283,29 @@ def worker(conn, task_name: str, method: tuple, target: np.ndarray, seed: int, a
             return
 
 
+@contextlib.contextmanager
+def worker_processes(target, arguments: dict, runs: dict):
+    """One spawned process per method running ``target(conn, *arguments[name])``, its end of
+    the pipe as ``runs[name]["conn"]``; the block starts once each has said ``ready``, and
+    every process is joined (killed after a minute) when it ends."""
+    context = multiprocessing.get_context("spawn")
+    for name, args in arguments.items():
+        here, there = context.Pipe()
+        process = context.Process(target=target, args=(there, *args))
+        process.start()
+        runs[name].update(conn=here, process=process)
+    try:
+        for run in runs.values():
+            if run["conn"].recv() != "ready":
+                raise RuntimeError("a worker failed to start")
+        yield runs
+    finally:
+        for run in runs.values():
+            run["process"].join(timeout=60)
+            if run["process"].is_alive():
+                run["process"].kill()
+
+
 def run_task(task: Task, seed: int, args) -> dict:
     """One seed of one task: every method's history (each method in a process of its own,
     :func:`worker`; the scoring here)."""
@@ -301,16 +325,8 @@ def run_task(task: Task, seed: int, args) -> dict:
         return np.array(mi.render(scorer, integrator=path, spp=args.eval_spp, seed=123))
 
     reference = scoring_render()
-    context = multiprocessing.get_context("spawn")
-    runs = {}
-    for name, method in methods(args.plan_every).items():
-        here, there = context.Pipe()
-        process = context.Process(target=worker, args=(there, task.name, method, target, seed, args))
-        process.start()
-        runs[name] = dict(conn=here, process=process, step=0, clock=0.0, step_times=[], history=[], builds=0)
-    for run in runs.values():
-        if run["conn"].recv() != "ready":
-            raise RuntimeError("a worker failed to start")
+    runs = {name: dict(step=0, clock=0.0, step_times=[], history=[], builds=0) for name in methods(args.plan_every)}
+    workers = {name: (task.name, method, target, seed, args) for name, method in methods(args.plan_every).items()}
 
     def score(run):
         run["conn"].send("params")
@@ -323,7 +339,7 @@ def run_task(task: Task, seed: int, args) -> dict:
                                "loss": float(np.mean(np.square(scoring_render() - reference))),
                                "parameter_error": task.parameter_error(scorer_params)})
 
-    try:
+    with worker_processes(worker, workers, runs):
         for run in runs.values():
             score(run)
         while any(run["clock"] < args.seconds for run in runs.values()):
@@ -341,11 +357,6 @@ def run_task(task: Task, seed: int, args) -> dict:
         for run in runs.values():
             run["conn"].send("done")
             run["recordings"] = run["conn"].recv()
-    finally:
-        for run in runs.values():
-            run["process"].join(timeout=60)
-            if run["process"].is_alive():
-                run["process"].kill()
     return {name: {"steps": run["step"], "seconds": run["clock"], "state_builds": run["builds"],
                    "recordings": run["recordings"],
                    "median_step_s": float(np.median(run["step_times"])),
