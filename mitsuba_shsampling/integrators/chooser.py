@@ -625,6 +625,9 @@ class StrategyChooser:
         #: integrator must then render as configured, without choosing (a nested choice
         #: would see the pilot's configuration, and the pilots would not run what they time).
         self.piloting = False
+        #: ``sh_prb``'s plan for the gradients (:mod:`.gradient_plan`): (scene, the candidate
+        #: kept, its scores), reused by the states rebuilt for the same scene.
+        self.gradient_choice = None
 
     def prepare(self, integrator: mi.SamplingIntegrator, env, scene: mi.Scene, sensor):
         """:meth:`before_render` for a plugin derived from ``mi.SamplingIntegrator``

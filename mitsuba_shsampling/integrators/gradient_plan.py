@@ -4,10 +4,10 @@ The plan (:mod:`.chooser`) picks each material's strategy for the primal image's
 variance at equal time. In an optimisation the gradients are what is estimated, and
 their variance can rank the strategies otherwise: on the material studio with seven
 material parameters unknown, the plan put every material on ``environment`` while
-``product`` everywhere gave gradients of 0.49-0.68x the variance, 1.3-1.8x the
-efficiency on the start's gradients (``scripts/bench_gradient_plans.py``, docs/MEASUREMENTS.md).
-At equal time, over the image's plan, what this picks measured +8 % and -3 % there (start and
-truth) and +2 % and -10 % on a roughness and a texture: not enough to be the default.
+``product`` everywhere gave gradients of 0.82x (at the start) and 0.91x (at the truth) the
+variance (``scripts/bench_gradient_plans.py``, docs/MEASUREMENTS.md). At equal time, over the
+image's plan, what this module picks measured 1.09x and 0.94x there, and 1.05x and 0.87x on a
+roughness and a texture, within the timing's noise (about 10 %): it is not the default.
 
 With ``plan_for`` ``gradients``, where the scene has parameters with gradients enabled when
 the plan is made (an optimisation's unknowns), three candidates are weighed after the plan: the plan itself, every material on ``environment`` and every
@@ -39,6 +39,7 @@ GRADIENT_PILOTS = 4
 
 GRADIENT_PILOT_SEED = 7_000
 """First seed of the gradient pilots (fixed: the same plan in every process)."""
+
 
 def differentiable_parameters(scene: mi.Scene) -> dict:
     """Key -> value of every scene parameter whose gradient is enabled."""
@@ -150,7 +151,7 @@ def plan_for_gradients(integrator, env, scene: mi.Scene, sensor, warps: tuple) -
     shares = {key: m.share for m in env.choice.materials for key in env.strategies.ids
               if env.material_name(key) == m.name}
     start = time.perf_counter()
-    known = getattr(chooser, "gradient_choice", None)
+    known = chooser.gradient_choice
     if known is not None and known[0] is scene:
         kept, scores = known[1], dict(known[2])
     else:

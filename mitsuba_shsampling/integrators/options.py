@@ -396,7 +396,7 @@ class PRBOptions(PathOptions):
         "unknowns): the plan, every material on ``environment`` and every material on ``product`` "
         "weighed by a few primal and replay passes at fixed seeds, 1.5-3.5 s once per scene "
         "(integrators/gradient_plan.py). Measured on three inverse problems at equal time it was "
-        "within -10 % to +8 % of ``image``'s plan (scripts/bench_gradient_plans.py), so it is not "
+        "0.87-1.09x ``image``'s plan (scripts/bench_gradient_plans.py), so it is not "
         "the default. A strategy set by ``strategy`` is kept as set."))
 
     def _check_ranges(self) -> None:
