@@ -321,9 +321,8 @@ def _leaf_excess(share: mi.Float64, leaf_share: mi.Float64, leaf_corners: mi.Flo
     row, column = lane // size, lane % size
     leaf_row, leaf_column = row >> shift, column >> shift
     leaves = dr.opaque(u32, m)
-    corner = leaf_corners
     first = leaf_row * (leaves + 1) + leaf_column
-    v = [dr.gather(mi.Float64, corner, index) for index in (first, first + 1, first + leaves + 1, first + leaves + 2)]
+    v = [dr.gather(mi.Float64, leaf_corners, index) for index in (first, first + 1, first + leaves + 1, first + leaves + 2)]
     floor = CORNER_FLOOR * (v[0] + v[1] + v[2] + v[3])
     v = [x + floor for x in v]
     quarter_sum = 0.25 * (v[0] + v[1] + v[2] + v[3])
@@ -423,7 +422,12 @@ def sum_pyramid_blocks(finest: mi.Float64, depth: int, count: int = 1) -> mi.Flo
     other (4 * block_offset(depth) values each). Block 0 is [root, 0, 0, 0]; then level by
     level one block per parent, its children in (z-half, phi-half) order (0,0), (0,1),
     (1,0), (1,1). (In numpy, the 486 cosine tables of a map took 0.09 s; docs/MEASUREMENTS.md.)"""
-    levels, blocks = sum_levels(finest, depth, count)
+    return blocks_buffer(*sum_levels(finest, depth, count), depth, count)
+
+
+def blocks_buffer(levels: list, blocks: list, depth: int, count: int = 1) -> mi.Float64:
+    """Levels 0 .. ``depth`` of :func:`sum_levels` (which may hold finer ones) in the buffer
+    layout of :func:`sum_pyramid_blocks`."""
     u32 = mi.UInt32
     stride = 4 * block_offset(depth)
     out = dr.zeros(mi.Float64, count * stride)
@@ -909,9 +913,7 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
     corners = corners_at_level(corners, built_depth, depth)
     # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
     # leaf records with the corners they need (see :func:`leaf_records`).
-    total = float(levels[0].numpy()[0])
-    buffer = np.concatenate([np.array([total, 0.0, 0.0, 0.0], dtype=np.float32)]
-                            + [mi.Float(blocks[k]).numpy() for k in range(1, depth)])
+    buffer = mi.Float(blocks_buffer(levels, blocks, depth - 1)).numpy()
     return {"buffer": buffer, "records": leaf_records(mi.Float(blocks[depth]), corners),
-            "depth": depth, "trimmed_levels": built_depth - depth, "total": total,
+            "depth": depth, "trimmed_levels": built_depth - depth, "total": float(levels[0].numpy()[0]),
             "radiant_total": radiant_total, "compensated": compensated}
