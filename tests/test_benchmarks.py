@@ -57,6 +57,39 @@ def test_bench_calls_run_in_process_and_saves_records_and_output(tmp_path, monke
     assert "8x16" in (folder / "stdout.txt").read_text().replace(" ", "")
 
 
+def test_the_pyramid_benchmark_builds_each_repeat_and_its_child_never_reads_the_disk_cache(monkeypatch):
+    """A build the disk cache or the process held would be timed as a read, not a build."""
+    from mitsuba_shsampling import build_cache
+    from mitsuba_shsampling.envmap import pyramid
+    from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong
+    built = []
+    real = pyramid._pyramid_arrays
+    monkeypatch.setattr(pyramid, "_pyramid_arrays", lambda *a, **k: built.append(1) or real(*a, **k))
+    emitter = envmap_emitter(sun_sky_latlong(8, 16))
+    env_pyramid._rebuilt(emitter)
+    env_pyramid._rebuilt(emitter)
+    assert len(built) == 2
+
+    seen = {}
+
+    def child(command, env, **kwargs):
+        seen.update(env)
+        return subprocess.CompletedProcess(command, 0, stdout='{"height": 8}\n', stderr="")
+
+    monkeypatch.setattr(env_pyramid.subprocess, "run", child)
+    assert env_pyramid.measure(8, 16, 1) == {"height": 8}
+    assert seen[build_cache.ENVIRONMENT_VARIABLE] == "off"
+
+
+def test_a_child_that_dies_names_the_map_and_gives_its_own_error(monkeypatch):
+    def child(command, **kwargs):
+        return subprocess.CompletedProcess(command, -11, stdout="", stderr="Fatal Python error: Segmentation fault")
+
+    monkeypatch.setattr(env_pyramid.subprocess, "run", child)
+    with pytest.raises(RuntimeError, match=r"8x16 map failed \(exit -11\):\nFatal Python error"):
+        env_pyramid.measure(8, 16, 1)
+
+
 def test_a_failing_benchmark_is_recorded_not_raised(tmp_path, monkeypatch):
     def broken(quick=False):
         raise RuntimeError("no kernel today")

@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 
+from ..build_cache import ENVIRONMENT_VARIABLE
 from . import write_json
 
 SIZES = ("512x1024", "4096x8192")
@@ -44,18 +46,33 @@ def measure_here(height: int, width: int, repeats: int) -> dict:
     numpy_peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     rss_growth = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before
-    times = [first.build_time_s] + [EnvPyramid(emitter).build_time_s for _ in range(repeats)]
+    times = [first.build_time_s] + [_rebuilt(emitter).build_time_s for _ in range(repeats)]
     return dict(height=height, width=width, depth=first.depth, first_build_s=times[0],
                 build_s=statistics.median(times[1:] or times), buffer_mb=first.nbytes / 2**20,
                 numpy_peak_mb=numpy_peak / 2**20, rss_growth_mb=rss_growth / 1024, total=first.total)
 
 
+def _rebuilt(emitter) -> "EnvPyramid":
+    """A pyramid built again, not the record the first build left in the process."""
+    from ..build_cache import clear_in_process
+    from ..envmap import EnvPyramid
+
+    clear_in_process()
+    return EnvPyramid(emitter)
+
+
 def measure(height: int, width: int, repeats: int) -> dict:
-    """:func:`measure_here` in a fresh interpreter."""
+    """:func:`measure_here` in a fresh interpreter, with the disk cache of builds off: a
+    build it held would be read, not built (and its writer thread would run beside the
+    peak-memory tracing)."""
     code = ("import json, sys; from mitsuba_shsampling.benchmarks.env_pyramid import measure_here; "
             "print(json.dumps(measure_here(*map(int, sys.argv[1:]))))")
-    result = subprocess.run([sys.executable, "-c", code, str(height), str(width), str(repeats)],
-                            check=True, capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-X", "faulthandler", "-c", code, str(height), str(width),
+                             str(repeats)], capture_output=True, text=True,
+                            env=dict(os.environ, **{ENVIRONMENT_VARIABLE: "off"}))
+    if result.returncode != 0:  # the child's own traceback (or fault handler's stacks) says why
+        raise RuntimeError(f"measuring a {height}x{width} map failed (exit {result.returncode}):\n"
+                           f"{result.stderr[-4000:]}")
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
