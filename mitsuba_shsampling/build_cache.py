@@ -226,22 +226,33 @@ def prune(folder: str | None) -> None:
                   if name != own and _DIGEST_NAME.match(name) and os.path.isdir(os.path.join(root, name))]
         for old in sorted(others, key=last_used, reverse=True)[KEPT_VERSIONS:]:
             shutil.rmtree(old, ignore_errors=True)
-    files = []
-    for here, _, names in os.walk(folder):
-        for name in names:
-            path = os.path.join(here, name)
-            with contextlib.suppress(OSError):
-                info = os.stat(path)
-                files.append((info.st_mtime, info.st_size, path))
-    total = sum(size for _, size, _ in files)
-    if total <= MAX_FOLDER_BYTES:
-        return
-    for _, size, path in sorted(files):
-        if total <= PRUNED_SHARE * MAX_FOLDER_BYTES:
-            break
+    trim_least_recently_used([os.path.join(here, name) for here, _, names in os.walk(folder) for name in names],
+                             MAX_FOLDER_BYTES)
+
+
+def trim_least_recently_used(paths: list, max_bytes: int, group=lambda path: path) -> None:
+    """Where ``paths`` hold more than ``max_bytes``, delete the least recently used (by
+    modification time: a read should touch its file) down to :data:`PRUNED_SHARE` of it.
+    ``group(path)`` names the entry a file belongs to: an entry's files go together, when
+    its newest is the oldest left. Files that vanish meanwhile (another process pruning)
+    are skipped."""
+    entries: dict = {}
+    for path in paths:
         with contextlib.suppress(OSError):
-            os.remove(path)
-            total -= size
+            info = os.stat(path)
+            entry = entries.setdefault(group(path), [0.0, 0, []])
+            entry[0], entry[1] = max(entry[0], info.st_mtime), entry[1] + info.st_size
+            entry[2].append(path)
+    total = sum(size for _, size, _ in entries.values())
+    if total <= max_bytes:
+        return
+    for _, size, files in sorted(entries.values(), key=lambda entry: entry[0]):
+        if total <= PRUNED_SHARE * max_bytes:
+            break
+        for path in files:
+            with contextlib.suppress(OSError):
+                os.remove(path)
+        total -= size
 
 
 def _write(path: str, record: Record) -> None:

@@ -1,6 +1,7 @@
 """Specification: the disk cache of builds is bounded. Folders of other package versions beyond
 the most recently used few are deleted (only folders named like a version), and this version's
-least recently used files go once it holds more than its bound; a build read back counts as used."""
+least recently used files go once it holds more than its bound; a build read back counts as used.
+The report's reference renders beside them are bounded the same way."""
 
 import os
 import time
@@ -54,3 +55,18 @@ def test_a_build_read_back_counts_as_used(tmp_path, monkeypatch):
     record = build_cache.cached_build("test", "key", lambda: {"values": np.zeros(3)})
     assert np.array_equal(record["values"], np.arange(3.0))  # read, not built
     assert os.path.getmtime(path) > time.time() - 60
+
+
+def test_the_reports_references_are_bounded_too_each_npz_with_its_exr(tmp_path, monkeypatch):
+    """A reference (``ref_<scene>_<key>.npz`` and its ``.exr``) goes whole, least recently
+    used first; nothing else in the folder is touched."""
+    from mitsuba_shsampling.report import rendering
+    monkeypatch.setattr(rendering, "MAX_REFERENCE_BYTES", 1000)
+    for k in range(4):  # 4 references of 300 + 100 bytes, reference 0 the oldest
+        touch(str(tmp_path / f"ref_scene_{k}.npz"), size=300, age=100.0 * (4 - k))
+        touch(str(tmp_path / f"ref_scene_{k}.exr"), size=100, age=100.0 * (4 - k))
+    os.utime(tmp_path / "ref_scene_1.npz")  # read just now
+    touch(str(tmp_path / "notes.npz"), size=5000, age=1e6)
+    rendering.prune_references(str(tmp_path))
+    left = sorted(p.name for p in tmp_path.iterdir() if p.is_file())
+    assert left == ["notes.npz", "ref_scene_1.exr", "ref_scene_1.npz", "ref_scene_3.exr", "ref_scene_3.npz"]

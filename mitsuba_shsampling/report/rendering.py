@@ -24,6 +24,7 @@ time, not Python's tracing (``compare --no-freeze`` times traced passes).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -36,6 +37,7 @@ import numpy as np
 import mitsuba as mi
 
 from .. import scenes as builtin
+from ..build_cache import trim_least_recently_used
 from ..frozen import FrozenPass
 from . import metrics, scene_setup
 from .methods import DIRECT, MULTI_BOUNCE, Method
@@ -307,6 +309,23 @@ class Reference:
 #: error (per pixel, and of its image mean in the bias test).
 REFERENCE_CHUNKS = 8
 
+MAX_REFERENCE_BYTES = 2 * 2**30
+"""The cached references (``ref_*`` files of a cache folder) kept at most; beyond it the least
+recently used go, each reference's ``.npz`` and ``.exr`` together (a 480 x 360 reference is
+~19 MB: about a hundred are kept)."""
+
+
+def _reference_entry(path: str) -> str:
+    return os.path.splitext(path)[0]
+
+
+def prune_references(cache_dir: str) -> None:
+    """Bound the references of ``cache_dir`` (:data:`MAX_REFERENCE_BYTES`); a read touches its file."""
+    with contextlib.suppress(OSError):
+        paths = [os.path.join(cache_dir, name) for name in os.listdir(cache_dir)
+                 if name.startswith("ref_") and name.endswith((".npz", ".exr"))]
+        trim_least_recently_used(paths, MAX_REFERENCE_BYTES, group=_reference_entry)
+
 
 def render_reference(scene_path: str, settings: dict, family: str, ref_spp: int,
                      cache_dir: str, progress=None) -> Reference:
@@ -325,7 +344,10 @@ def render_reference(scene_path: str, settings: dict, family: str, ref_spp: int,
     path = os.path.join(cache_dir, f"ref_{stem}_{key}.npz")
     if os.path.isfile(path):
         with np.load(path) as data:
-            return Reference(data["chunks"], int(data["spp"]), path, True, 0.0)
+            reference = Reference(data["chunks"], int(data["spp"]), path, True, 0.0)
+        with contextlib.suppress(OSError):
+            os.utime(path)  # used now: the last to go when the references are pruned
+        return reference
 
     integrator = mi.load_dict(reference_integrator(family, settings["max_depth"]))
     chunk_spp = max(1, ref_spp // REFERENCE_CHUNKS)
@@ -350,6 +372,7 @@ def render_reference(scene_path: str, settings: dict, family: str, ref_spp: int,
     finally:
         if os.path.exists(partial):
             os.remove(partial)
+    prune_references(cache_dir)
     return reference
 
 
@@ -364,4 +387,4 @@ def read_exr(path: str) -> np.ndarray:
 
 
 __all__ = ["MULTI_BOUNCE", "PassSet", "MethodRenderer", "Reference", "admissible_spp", "interleaved_passes",
-           "render_reference", "reference_integrator", "write_exr", "read_exr"]
+           "prune_references", "render_reference", "reference_integrator", "write_exr", "read_exr"]
