@@ -152,3 +152,21 @@ def test_interleaved_timing_runs_each_kernel_once_a_round_in_a_rotating_order():
     assert {n: len(t) for n, t in times.items()} == {"a": 4, "b": 4, "c": 4}
     assert all(t >= 0.0 for ts in times.values() for t in ts)
     assert benchmarks.kernel_seconds(lambda: None) == 0.0  # no kernel launched, no time
+
+
+def test_the_required_gain_script_prices_each_cells_best_product_plan_against_its_measured_gain(tmp_path):
+    """The plan's candidate (predicted gain over the lean kernel) beside what forcing it
+    measured at equal time, for a cell it renders; a cell outside ``--near`` is listed only."""
+    out = tmp_path / "gain.json"
+    env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    envmap = os.path.join(REPO, "tests", "data", "envmaps", "forest_slope_1k.hdr")
+    proc = subprocess.run([sys.executable, os.path.join(REPO, "scripts", "bench_required_gain.py"),
+                           "--scenes", "sphere_ggx010", "--maps", envmap, "--res", "32", "--spp", "2",
+                           "--passes", "2", "--near", "0", "1000", "--json", str(out)],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["scene"] == "sphere_ggx010" and row["map"] == "forest_slope_1k"
+    assert row["predicted"] > 0 and set(row["strategies"].values()) & {"product", "product_only"}
+    assert row["measured"] > 0 and row["time_ratio"] > 0
+    assert "sphere_ggx010" in proc.stdout

@@ -13,7 +13,8 @@ mi.set_variant("llvm_ad_rgb")
 from test_integrators import MATERIALS, make_scene  # noqa: E402
 
 import mitsuba_shsampling  # noqa: E402
-from mitsuba_shsampling.integrators.chooser import REQUIRED_GAIN, rounded  # noqa: E402
+from mitsuba_shsampling.integrators.chooser import rounded  # noqa: E402
+from mitsuba_shsampling.integrators.emitter_selection import SELECTION_REQUIRED_GAIN  # noqa: E402
 from mitsuba_shsampling.integrators.emitter_selection import price_emitter_selection  # noqa: E402
 from mitsuba_shsampling.integrators.sharing import forget_shared  # noqa: E402
 
@@ -86,7 +87,7 @@ def test_one_runs_only_where_its_variance_times_its_time_wins_by_the_required_ga
     # variance: 1.08 > 1) and at 3x 'each' does.
     env, render_pass = fake_render({"each": 1.0, "one": one_noise})
     priced = price_emitter_selection(env, render_pass, spp=1, pass_time=1.0, sample_time=0.4, smooth_share=0.9,
-                                     required_gain=REQUIRED_GAIN, rounded=rounded)
+                                     required_gain=SELECTION_REQUIRED_GAIN, rounded=rounded)
     assert priced.design == expected and env.emitter_selection == expected
     assert priced.pass_time == pytest.approx({"each": 1.0, "one": 0.64})
     assert priced.variance["one"] == pytest.approx(one_noise ** 2 * priced.variance["each"], rel=0.1)
@@ -100,7 +101,7 @@ def test_the_pilots_of_both_designs_are_rendered_with_the_design_set_and_the_set
         seen.append((env.emitter_selection, seed))
         return inner(spp, seed)
 
-    price_emitter_selection(env, render_pass, 1, 1.0, 0.1, 1.0, REQUIRED_GAIN, rounded)
+    price_emitter_selection(env, render_pass, 1, 1.0, 0.1, 1.0, SELECTION_REQUIRED_GAIN, rounded)
     designs = [d for d, _ in seen]
     assert designs.count("each") == designs.count("one") >= 2
     # The same seeds for both designs, round by round.

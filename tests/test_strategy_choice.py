@@ -229,6 +229,32 @@ def test_materials_where_nothing_pays_leave_the_product_out_of_the_kernel():
     assert choice.predicted_gain == 1.0
 
 
+def test_a_lean_plan_says_by_how_much_the_best_product_plan_missed_the_required_gain(monkeypatch):
+    """The best assignment with a product strategy is kept beside the choice, taken or not, so
+    that a user reads why a plan stayed lean; where no assignment with the product is the best
+    (a diffuse floor under a tiny sun) there is none to show."""
+    from mitsuba_shsampling.integrators import chooser
+    scene = floor_scene({"type": "roughconductor", "distribution": "ggx", "alpha": 0.1}, WINDOW)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    taken = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=Pilots(PASS_TIME))
+    candidate = taken.product_candidate
+    assert not taken.lean and candidate["predicted_gain"] == taken.predicted_gain > chooser.REQUIRED_GAIN
+    assert candidate["strategies"] == taken.assignment()
+    assert "required" not in taken.summary()
+
+    monkeypatch.setattr(chooser, "REQUIRED_GAIN", 2 * taken.predicted_gain)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    missed = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=Pilots(PASS_TIME))
+    assert missed.lean and missed.product_candidate == candidate
+    assert (f"the best product plan: predicted x{candidate['predicted_gain']:.2f}, "
+            f"{2 * taken.predicted_gain:.2f} required" in missed.summary())
+
+    scene = floor_scene({"type": "diffuse"}, SUN)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    none = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=Pilots(PASS_TIME))
+    assert none.lean and none.product_candidate == {} and "required" not in none.summary()
+
+
 # ------------------------------------------------------------ predictions against renders
 
 @pytest.mark.parametrize("case", ["diffuse_sun", "glossy_window", "diffuse_window"])

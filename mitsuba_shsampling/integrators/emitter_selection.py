@@ -20,8 +20,7 @@ sky), ``each`` otherwise (every measured scene: docs/MEASUREMENTS.md). The plan
 (:func:`price_emitter_selection`) renders its chosen assignment with both, reads each one's
 variance from the images (:data:`~.pilots.PILOT_IMAGES` passes at the pilots' seeds), and
 prices each pass with the cost model (``plan`` ``measure``: times them); ``one`` runs where
-its variance x time is lower by :data:`~.chooser.REQUIRED_GAIN`, as a product strategy must
-beat the lean kernel.
+its variance x time is lower by :data:`SELECTION_REQUIRED_GAIN`.
 """
 
 from __future__ import annotations
@@ -31,6 +30,11 @@ from typing import Callable
 
 from ..timing import kernel_time
 from .pilots import PILOT_IMAGES, PILOT_REPEATS, PILOT_SEED, film_mean_pixel_variance
+
+SELECTION_REQUIRED_GAIN = 1.15
+"""``one`` must be predicted to beat ``each`` by this factor at equal time: its variance has
+the heavier tail (a light drawn with probability p weighs 1 / p), which a few pilot images
+see least."""
 
 DESIGNS = ("each", "one")
 """The two designs, in the order a frozen pass's input marks them (:func:`~.sharing.design_marker`)."""
