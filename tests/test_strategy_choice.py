@@ -239,13 +239,14 @@ def test_a_lean_plan_says_by_how_much_the_best_product_plan_missed_the_required_
     taken = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=Pilots(PASS_TIME))
     candidate = taken.product_candidate
     assert not taken.lean and candidate["predicted_gain"] == taken.predicted_gain > chooser.REQUIRED_GAIN
+    assert candidate["required_gain"] == chooser.REQUIRED_GAIN
     assert candidate["strategies"] == taken.assignment()
     assert "required" not in taken.summary()
 
     monkeypatch.setattr(chooser, "REQUIRED_GAIN", 2 * taken.predicted_gain)
     env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
     missed = choose_strategies(env, scene.sensors()[0], 1, 1, render_pass=None, pilots=Pilots(PASS_TIME))
-    assert missed.lean and missed.product_candidate == candidate
+    assert missed.lean and missed.product_candidate == dict(candidate, required_gain=2 * taken.predicted_gain)
     assert (f"the best product plan: predicted x{candidate['predicted_gain']:.2f}, "
             f"{2 * taken.predicted_gain:.2f} required" in missed.summary())
 

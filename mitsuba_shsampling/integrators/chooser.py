@@ -156,10 +156,11 @@ class StrategyChoice:
     design chosen and what it was weighed with (:class:`~.emitter_selection.SelectionPrice`
     as a dict); empty elsewhere."""
     product_candidate: dict = dataclasses.field(default_factory=dict)
-    """The best assignment with a product strategy, chosen or not: its ``predicted_gain`` at
-    equal time over the lean kernel and its ``strategies`` (material name -> label), so that a
-    lean plan says by how much the product missed :data:`REQUIRED_GAIN`; empty where no
-    material can run a product strategy."""
+    """The best assignment with the product allowed, where it runs a product strategy, chosen
+    or not: its ``predicted_gain`` at equal time over the lean kernel, the ``required_gain`` it
+    was held to (:data:`REQUIRED_GAIN`) and its ``strategies`` (material name -> label), so that
+    a lean plan says by how much the product missed; empty where that assignment has no product
+    strategy (or no material can run one)."""
 
     def as_dict(self) -> dict:
         return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
@@ -197,7 +198,7 @@ def summary_of(choice: dict) -> str:
              for m in sorted(choice["materials"], key=lambda m: m["name"]) if m["share"] > 0]
     candidate = choice.get("product_candidate", {})
     missed = (f" (the best product plan: predicted x{candidate['predicted_gain']:.2f}, "
-              f"{REQUIRED_GAIN:.2f} required)" if candidate else "")
+              f"{candidate.get('required_gain', REQUIRED_GAIN):.2f} required)" if candidate else "")
     head = ("no product strategy pays: environment strategies only, without product code" + missed
             if choice["lean"] else f"predicted x{choice['predicted_gain']:.2f} at equal time over environment "
                                    "strategies only")
@@ -535,7 +536,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
                 error_full = predicted_error(full_choice, seen_allowed, rest + shared, p.share, base, extra)
             pays = error_full * REQUIRED_GAIN < error_lean
             if any(s.uses_product for s in full_choice.values()):
-                candidate = {"predicted_gain": error_lean / error_full,
+                candidate = {"predicted_gain": error_lean / error_full, "required_gain": REQUIRED_GAIN,
                              "strategies": {env.material_name(k): s.label for k, s in full_choice.items()}}
                 if pays or product_forced:
                     choice, lean, gain = {**lean_choice, **full_choice}, False, error_lean / error_full
