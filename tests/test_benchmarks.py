@@ -60,6 +60,7 @@ def test_bench_calls_run_in_process_and_saves_records_and_output(tmp_path, monke
 def test_the_pyramid_benchmark_builds_each_repeat_and_its_child_never_reads_the_disk_cache(monkeypatch):
     """A build the disk cache or the process held would be timed as a read, not a build."""
     from mitsuba_shsampling import build_cache
+    monkeypatch.setenv(build_cache.ENVIRONMENT_VARIABLE, "off")  # as in the benchmark's child
     from mitsuba_shsampling.envmap import pyramid
     from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong
     built = []
@@ -156,7 +157,7 @@ def test_interleaved_timing_runs_each_kernel_once_a_round_in_a_rotating_order():
 
 def test_the_required_gain_script_prices_each_cells_best_product_plan_against_its_measured_gain(tmp_path):
     """The plan's candidate (predicted gain over the lean kernel) beside what forcing it
-    measured at equal time, for a cell it renders; a cell outside ``--near`` is listed only."""
+    measured at equal time, for a cell whose candidate falls within ``--near``."""
     out = tmp_path / "gain.json"
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
     envmap = os.path.join(REPO, "tests", "data", "envmaps", "forest_slope_1k.hdr")

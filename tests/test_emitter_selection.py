@@ -14,8 +14,8 @@ from test_integrators import MATERIALS, make_scene  # noqa: E402
 
 import mitsuba_shsampling  # noqa: E402
 from mitsuba_shsampling.integrators.chooser import rounded  # noqa: E402
-from mitsuba_shsampling.integrators.emitter_selection import SELECTION_REQUIRED_GAIN  # noqa: E402
-from mitsuba_shsampling.integrators.emitter_selection import price_emitter_selection  # noqa: E402
+from mitsuba_shsampling.integrators.emitter_selection import (SELECTION_REQUIRED_GAIN,  # noqa: E402
+                                                               price_emitter_selection)
 from mitsuba_shsampling.integrators.sharing import forget_shared  # noqa: E402
 
 BANDS = 5

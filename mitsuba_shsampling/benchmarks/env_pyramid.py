@@ -6,9 +6,12 @@ are not polluted by earlier runs. Prints a table and writes JSON.
     python3 scripts/bench_env_pyramid.py [--quick] [--sizes 512x1024 4096x8192] [--out env_pyramid_bench.json]
 
 Columns: texels (H x W), depth D, build time (median of ``--repeats`` builds
-after one warm-up), pyramid buffer size, peak numpy temporaries during the
-build (tracemalloc), and growth of the process's peak RSS during the first
-build (includes the emitter's own texel copy being read).
+after one warm-up), pyramid buffer size, and growth of the process's peak RSS
+during the first build (the host arrays of Dr.Jit's kernels and numpy's
+temporaries, and the emitter's own texel copy being read). No ``tracemalloc``:
+under CPython 3.11 its allocator hook crashed the child at exit (a native thread
+that Dr.Jit's exit handler starts asked for a thread state inside the hook; a core
+dump's backtrace, 2026-12-07), about one run in five with another process busy.
 """
 
 from __future__ import annotations
@@ -31,7 +34,6 @@ def measure_here(height: int, width: int, repeats: int) -> dict:
     meaningful in a fresh process (see :func:`measure`)."""
     import resource
     import statistics
-    import tracemalloc
 
     import mitsuba as mi
 
@@ -41,19 +43,17 @@ def measure_here(height: int, width: int, repeats: int) -> dict:
 
     emitter = envmap_emitter(sun_sky_latlong(height, width))
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    tracemalloc.start()
     first = EnvPyramid(emitter)
-    numpy_peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
     rss_growth = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss_before
     times = [first.build_time_s] + [_rebuilt(emitter).build_time_s for _ in range(repeats)]
     return dict(height=height, width=width, depth=first.depth, first_build_s=times[0],
                 build_s=statistics.median(times[1:] or times), buffer_mb=first.nbytes / 2**20,
-                numpy_peak_mb=numpy_peak / 2**20, rss_growth_mb=rss_growth / 1024, total=first.total)
+                rss_growth_mb=rss_growth / 1024, total=first.total)
 
 
 def _rebuilt(emitter) -> "EnvPyramid":
-    """A pyramid built again, not the record the first build left in the process."""
+    """A pyramid built again, not the record the first build left in the process (in
+    :func:`measure`'s child, whose disk cache is off, so that none is read from it either)."""
     from ..build_cache import clear_in_process
     from ..envmap import EnvPyramid
 
@@ -63,8 +63,7 @@ def _rebuilt(emitter) -> "EnvPyramid":
 
 def measure(height: int, width: int, repeats: int) -> dict:
     """:func:`measure_here` in a fresh interpreter, with the disk cache of builds off: a
-    build it held would be read, not built (and its writer thread would run beside the
-    peak-memory tracing)."""
+    build it held would be read, not built."""
     code = ("import json, sys; from mitsuba_shsampling.benchmarks.env_pyramid import measure_here; "
             "print(json.dumps(measure_here(*map(int, sys.argv[1:]))))")
     result = subprocess.run([sys.executable, "-X", "faulthandler", "-c", code, str(height), str(width),
@@ -79,14 +78,14 @@ def measure(height: int, width: int, repeats: int) -> dict:
 def run(quick: bool = False, sizes: list[str] | None = None, repeats: int = 3) -> list[dict]:
     """One record per map size (``HEIGHTxWIDTH``)."""
     print(f"{'texels':>11} {'D':>3} {'first s':>8} {'build s':>8} {'buffer MB':>10} "
-          f"{'numpy peak MB':>14} {'RSS growth MB':>14}")
+          f"{'RSS growth MB':>14}")
     rows = []
     for size in sizes or (QUICK_SIZES if quick else SIZES):
         height, width = map(int, size.lower().split("x"))
         r = measure(height, width, repeats)
         rows.append(r)
         print(f"{r['height']:>5}x{r['width']:<5} {r['depth']:>3} {r['first_build_s']:>8.3f} {r['build_s']:>8.3f} "
-              f"{r['buffer_mb']:>10.1f} {r['numpy_peak_mb']:>14.1f} {r['rss_growth_mb']:>14.1f}", flush=True)
+              f"{r['buffer_mb']:>10.1f} {r['rss_growth_mb']:>14.1f}", flush=True)
     return rows
 
 
