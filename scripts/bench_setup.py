@@ -156,7 +156,7 @@ def main(argv=None) -> None:
                         help="cache states to measure, in this order (default: all)")
     parser.add_argument("--map-change", default=None,
                         help="also time a change of the scene's map to this file's texels (same resolution)")
-    parser.add_argument("--json", default="bench_setup.json")
+    parser.add_argument("--json", default=os.path.join("docs", "bench_setup.json"))
     parser.add_argument(CHILD_FLAG, action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
