@@ -21,8 +21,9 @@ from mitsuba_shsampling.envmap.synthetic import envmap_emitter, sun_sky_latlong,
 from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.chooser import (choose_strategies, confirm_by_timing,  # noqa: E402
                                                     minimise_error_at_equal_time)
-from mitsuba_shsampling.integrators.pilots import (LEAN, Candidate, Pilots, calibrate, cosine_pilot,  # noqa: E402
-                                                   film_mean_pixel_variance, film_variance_factor,
+from mitsuba_shsampling.integrators import pilots as pilots_module  # noqa: E402
+from mitsuba_shsampling.integrators.pilots import (LEAN, Candidate, Pilots, calibrate, camera_sample_pass,  # noqa: E402
+                                                   cosine_pilot, film_mean_pixel_variance, film_variance_factor,
                                                    measure_pass_costs)
 from mitsuba_shsampling.integrators.quadrature import camera_frames, frame_variances  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
@@ -382,6 +383,56 @@ def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_meas
     calibrate(pilots, {E.label: 9.5, P.label: 2.5}, model, candidates, variance, rest=0.5)
     assert pilots.shared_variance == pytest.approx(2.5)
     assert pilots.calibration[E] == pytest.approx((9.5 - 2.5) / 6.5) == pilots.calibration[EO]
+
+
+#: A floor in four large tiles: an image whose mean a partial cover of the film would miss.
+COARSE_CHECKER = {"type": "diffuse", "reflectance": {"type": "checkerboard", "color0": 0.05, "color1": 0.9,
+                                                     "to_uv": mi.ScalarTransform4f().scale([2, 2, 1])}}
+
+
+@pytest.mark.parametrize("size, lanes", [(64, 1024), (16, 4096)])
+def test_a_camera_sample_pass_estimates_the_films_mean_at_any_resolution(size, lanes):
+    """The default plan's pilots are camera samples, not films: the integrator's sample of one
+    camera ray at each of ``lanes`` film positions, strided over a film with more pixels,
+    repeated over one with fewer. Their mean is the image's (a box filter's film is the mean
+    of its pixels), and the lanes' values are in the film's channels."""
+    scene = floor_scene(COARSE_CHECKER, WINDOW, size=size)
+    sensor = scene.sensors()[0]
+    direct = mi.load_dict({"type": "direct"})
+    image = np.asarray(mi.render(scene, integrator=direct, spp=256, seed=1), dtype=np.float64)
+
+    def sample(scene, sampler, ray, active):
+        return direct.sample(scene, sampler, ray, None, active)[:2]
+
+    passes = [np.stack([np.asarray(c, dtype=np.float64) for c in camera_sample_pass(scene, sensor, sample, seed,
+                                                                                   lanes)], axis=-1)
+              for seed in range(64)]
+    assert passes[0].shape == (lanes, 3)
+    per_channel = np.mean(passes, axis=(0, 1))
+    assert per_channel == pytest.approx(image.reshape(-1, 3).mean(axis=0), rel=0.02)
+
+
+def test_the_default_plans_pilots_are_one_recording_replayed(monkeypatch):
+    """Every pilot of the default plan (each strategy, each round) replays one dr.freeze
+    recording: a film pass recorded twice (Mitsuba's sampler holds other arrays after its
+    first render), a camera-sample pass forks its own sampler."""
+    recordings = []
+    freeze = pilots_module.dr.freeze
+
+    def counted(function, **kwargs):
+        frozen = freeze(function, **kwargs)
+
+        def call(*args, **kw):
+            result = frozen(*args, **kw)
+            recordings.append(frozen.n_recordings)
+            return result
+        call.clear = frozen.clear
+        return call
+
+    monkeypatch.setattr(pilots_module.dr, "freeze", counted)
+    scene = floor_scene({"type": "roughconductor", "alpha": 0.1}, WINDOW)
+    choice = mi.load_dict({"type": "sh_direct", "plan_file": ""}).plan(scene)
+    assert len(choice.pilot_variance) == 3 and len(recordings) == 9 and set(recordings) == {1}
 
 
 def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():

@@ -51,8 +51,8 @@ import numpy as np
 
 from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
-from .pilots import (LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate, cosine_pilot,
-                     film_variance_factor, frozen_pilots, measure_pass_costs)
+from .pilots import (LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate, camera_sample_pass,
+                     cosine_pilot, film_variance_factor, frozen_pilots, measure_pass_costs)
 from .quadrature import PRODUCT_ONLY_SHARED, camera_frames, frame_variances
 from . import plan_file
 from .strategy import ESTIMATE, MEASURE, Strategy, strategy_named
@@ -406,13 +406,16 @@ def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool) -> dic
     return candidates
 
 
-def run_pilots(env, sensor: mi.Sensor, candidates: dict, render_pass: Callable, timed: bool) -> Pilots:
-    """The pilot passes of ``candidates``, at least :data:`~.pilots.PILOT_LANES` camera samples each."""
+def run_pilots(env, sensor: mi.Sensor, candidates: dict, render_pass: Callable, timed: bool,
+               film_factor: float | None) -> Pilots:
+    """The pilot passes of ``candidates``, at least :data:`~.pilots.PILOT_LANES` camera samples
+    each; ``film_factor``: :func:`choose_strategies`'s."""
     spp = pilot_spp(sensor)
+    factor = film_variance_factor(sensor.film(), spp) if film_factor is None else film_factor
     if timed:
-        return measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp)
+        return measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp, film_factor=factor)
     return measure_pass_costs(env, candidates, lambda seed: render_pass(spp, seed), spp=spp, repeats=PILOT_IMAGES,
-                              timed=False)
+                              timed=False, film_factor=factor)
 
 
 def pilot_spp(sensor: mi.Sensor) -> int:
@@ -434,14 +437,13 @@ def priced_emitter_selection(env, sensor: mi.Sensor, p: Predictions, pass_time: 
                                    p.smooth_share, SELECTION_REQUIRED_GAIN, rounded, lean_seconds).as_dict()
 
 
-def calibrated(p: Predictions, pilots: Pilots, candidates: dict, film: mi.Film):
+def calibrated(p: Predictions, pilots: Pilots, candidates: dict):
     """``(variance, rest, shared, fit)``: the predictions scaled to what the pilot images
     measured (:func:`~.pilots.calibrate`, rounded to :data:`SIGNIFICANT_DIGITS`), the
     shared variance ``S`` and, per pilot, (predicted, measured) film variance."""
     model = {name: p.rest + sum(p.variance[k][c.assignment[k]] for k in p.materials)
              for name, c in candidates.items()}
-    factor = film_variance_factor(film, pilots.spp)
-    measured = {name: v / factor for name, v in pilots.image_variance.items() if name in model}
+    measured = {name: v / pilots.film_factor for name, v in pilots.image_variance.items() if name in model}
     if pilots.shared_variance is None:
         calibrate(pilots, measured, model, candidates, p.variance, p.rest)
         pilots.shared_variance = rounded(pilots.shared_variance)
@@ -486,7 +488,7 @@ def apply_choice(env, choice: dict, lean: bool) -> None:
 
 def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: Callable[[int, int], object],
                       pilots: Pilots | None = None, costs: CostModel | None = None,
-                      forced: dict | None = None) -> StrategyChoice:
+                      forced: dict | None = None, film_factor: float | None = None) -> StrategyChoice:
     """Choose and assign (``env.strategies``) a strategy for every material; when no
     product strategy pays for the time its code costs every lane, drop the
     product altogether (:meth:`ProductEnvironment.drop_product`).
@@ -496,6 +498,9 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     the pilots in the scene (``plan`` ``measure``). ``pilots`` (as an earlier choice
     measured them) skips the pilot passes; pilots without images leave the shared
     variance ``S`` at 0. ``forced``: registry id -> the strategy the user set for it.
+    ``film_factor``: what ``render_pass``'s images' pixel variance is per unit variance of a
+    camera sample: 1 for camera-sample passes (:func:`~.pilots.camera_sample_pass`); None for
+    film passes (:func:`~.pilots.film_variance_factor` of the sensor's film).
     Without a product to choose, pilots run only where the quadrature prefers
     ``environment_only`` for some material.
     """
@@ -514,8 +519,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         candidates = pilot_candidates(env, p, lean_choice, timed)
         fresh = pilots is None  # (pilots of an earlier choice: the scene's parameters changed)
         if fresh:
-            pilots = run_pilots(env, sensor, candidates, render_pass, timed)
-        variance, rest, shared, fit = calibrated(p, pilots, candidates, sensor.film())
+            pilots = run_pilots(env, sensor, candidates, render_pass, timed, film_factor)
+        variance, rest, shared, fit = calibrated(p, pilots, candidates)
         if timed:
             costs = CostModel.from_pass_times(pilots.pass_time, pilot_shares(env, p), "measured in the scene")
         lean_time, base, extra = pass_times(costs, env, p.materials)
@@ -651,15 +656,19 @@ class StrategyChooser:
 
     def prepare(self, integrator: mi.SamplingIntegrator, env, scene: mi.Scene, sensor):
         """:meth:`before_render` for a plugin derived from ``mi.SamplingIntegrator``
-        (``sh_direct``, ``sh_path``): its pilots render through Mitsuba's
+        (``sh_direct``, ``sh_path``): its timed pilots render through Mitsuba's
         ``SamplingIntegrator.render``, past the plugin's own. Returns ``env``."""
         self.before_render(env, scene, sensor, lambda spp, seed: mi.SamplingIntegrator.render(
-            integrator, scene, sensor, seed, spp), integrator)
+            integrator, scene, sensor, seed, spp), integrator,
+            lambda scene, sampler, ray, active: integrator.sample(scene, sampler, ray, None, active)[:2])
         return env
 
-    def before_render(self, env, scene: mi.Scene, sensor, render: Callable, integrator=None) -> None:
+    def before_render(self, env, scene: mi.Scene, sensor, render: Callable, integrator=None,
+                      sample: Callable | None = None) -> None:
         """Plan for ``env`` if it awaits a plan. ``render(spp, seed)`` returns one
-        pass's image with ``integrator`` as it is (the pilots)."""
+        pass's image with ``integrator`` as it is (timed pilots); ``sample(scene, sampler,
+        ray, active) -> (spectrum, valid)`` is its sample of one camera ray (the default
+        plan's pilots: :func:`~.pilots.camera_sample_pass`; None: film passes too)."""
         if not env.awaits_choice:
             return
         if isinstance(sensor, int):
@@ -678,17 +687,20 @@ class StrategyChooser:
         if stored is not None:
             env.choice = stored_choice(env, stored, "file" if self.plan_file else "kept")
         else:
-            env.choice = self._choose(env, scene, sensor, render, integrator)
+            env.choice = self._choose(env, scene, sensor, render, integrator, sample)
             if file:
                 plan_file.save(file, env.choice, key)
         env.choice.setup_seconds = env.build_seconds + time.perf_counter() - start
         mi.Log(mi.LogLevel.Info, f"{env.plugin}: plan ({env.choice.mode}, set-up {env.choice.setup_seconds:.2f} s): "
                                  f"{env.choice.summary()}")
 
-    def _choose(self, env, scene, sensor, render, integrator) -> StrategyChoice:
-        # Untimed pilots differ only in the strategy table, which is device data: one
-        # recording replays them all (pilots.frozen_pilots). Timed pilots include the lean
-        # kernel, another trace: they render traced.
+    def _choose(self, env, scene, sensor, render, integrator, sample) -> StrategyChoice:
+        # Untimed pilots are camera samples, and differ only in the strategy table, which is
+        # device data: one recording replays them all (pilots.frozen_pilots). Timed pilots
+        # include the lean kernel, another trace: they render film passes traced.
+        samples = self.mode == ESTIMATE and sample is not None
+        if samples:
+            render = lambda spp, seed: camera_sample_pass(scene, sensor, sample, seed)  # noqa: E731
         replay = frozen_pilots(render, env, (scene, sensor, integrator)) if self.mode == ESTIMATE else render
 
         def render_pass(spp: int, seed: int):
@@ -705,7 +717,8 @@ class StrategyChooser:
         self.piloting = True
         try:
             choice = choose_strategies(env, sensor, self.n_e, self.n_b, render_pass, known,
-                                       None if self.mode == MEASURE else cost_model(self.kind), env.forced)
+                                       None if self.mode == MEASURE else cost_model(self.kind), env.forced,
+                                       1.0 if samples else None)
         finally:
             self.piloting = False
             sampler.set_sample_count(sample_count)

@@ -4,9 +4,13 @@ Their images measure, in the scene itself, what the quadrature (:mod:`.quadratur
 leaves out: the variance that every strategy shares (antialiasing, texture edges,
 other emitters, deeper vertices) and how far each strategy's prediction is off
 (:func:`calibrate`). Their seeds are fixed (:data:`PILOT_SEED`), so the same scene
-gives the same images, and the same plan, in every process. Timed, the same passes
-also measure each strategy's cost in the scene (``plan`` ``measure``, and the
-per-machine calibration of :mod:`.costs`); the default plan times nothing.
+gives the same images, and the same plan, in every process.
+
+The default plan's pilots are camera samples (:func:`camera_sample_pass`): one
+integrator sample at each of :data:`PILOT_LANES` film positions spread over the
+film, whatever its resolution, and no film. Timed, the pilots are whole film passes
+instead, which also measure each strategy's cost in the scene (``plan`` ``measure``,
+and the per-machine calibration of :mod:`.costs`): the default plan times nothing.
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ from ..timing import kernel_time
 from .strategy import Strategy
 
 PILOT_LANES = 2**17
-"""Camera samples per pilot pass (spp is rounded up so that the film gets at least this many)."""
+"""Camera samples per pilot pass: film positions of a camera-sample pass
+(:func:`camera_sample_pass`); a timed film pass rounds its spp up to at least this many."""
 
 PILOT_REPEATS = 4
 """Timed pilot passes per strategy (interleaved; the fastest counts: whatever else
@@ -77,9 +82,13 @@ class Pilots:
     """Pilot -> pass time (s): the kernels' execution time, the fastest of the timed passes."""
     image_variance: dict = dataclasses.field(default_factory=dict)
     """Pilot -> per-pixel variance of one pilot pass (channel-averaged, as the report's
-    MSE), averaged over the film (from its pilot images, one per round of pilots)."""
+    MSE), averaged over the film (from its pilot images, one per round of pilots); a
+    camera-sample pass's pixels are its lanes."""
     spp: int = 1
     """Samples per pixel of a pilot pass."""
+    film_factor: float = 1.0
+    """What ``image_variance`` is per unit variance of one camera sample (the quadrature's
+    unit): 1 for camera-sample passes, :func:`film_variance_factor` for film passes."""
     shared_variance: float | None = None
     """``S`` once derived (:func:`calibrate`); kept when the scene's parameters change
     and only the quadrature is redone."""
@@ -103,22 +112,63 @@ def film_variance_factor(film: mi.Film, spp: int) -> float:
     return ratio ** 2 / spp
 
 
+def camera_sample_pass(scene: mi.Scene, sensor: mi.Sensor, sample: Callable, seed, lanes: int = PILOT_LANES) -> list:
+    """One camera sample at each of ``lanes`` film positions, as Mitsuba's
+    ``SamplingIntegrator`` takes one (a uniform position in the pixel, then the aperture,
+    time and wavelength samples; the ray weighted by the sensor's), through ``sample(scene,
+    sampler, ray, active) -> (spectrum, valid)``: per lane its value in the film's channels
+    (linear sRGB; one channel in mono variants), a list of arrays, invalid samples 0.
+
+    The positions are the film's pixels in raster order, ``lanes`` of them evenly strided
+    where the film has more (1280 x 960: every 9.4th), each pixel as often as it takes where
+    it has fewer. So a pass costs the same at every resolution, and develops no film (at
+    1280 x 960 a film pass of the same scene costs 12x as much; docs/MEASUREMENTS.md). The
+    sampler is the sensor's, forked and seeded with ``seed`` for ``lanes`` lanes: the same
+    seed draws the same numbers whatever each material runs (common random numbers)."""
+    size = sensor.film().crop_size()
+    width, pixels = int(size[0]), int(size[0]) * int(size[1])
+    sampler = sensor.sampler().fork()
+    sampler.set_sample_count(1)
+    sampler.set_samples_per_wavefront(1)
+    sampler.seed(seed, lanes)
+    lane = dr.arange(mi.UInt32, lanes)
+    pixel = mi.UInt32(mi.Float64(lane) * (pixels / lanes)) if pixels > lanes else lane % pixels
+    position = mi.Vector2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
+    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+    time = mi.Float(sensor.shutter_open())
+    if sensor.shutter_open_time() > 0:
+        time += sampler.next_1d() * sensor.shutter_open_time()
+    wavelength = sampler.next_1d() if mi.is_spectral else mi.Float(0.0)
+    ray, weight = sensor.sample_ray_differential(time, wavelength, position / mi.ScalarVector2f(size), aperture)
+    spectrum, valid = sample(scene, sampler, ray, mi.Bool(True))
+    spectrum = dr.select(valid, mi.unpolarized_spectrum(spectrum) * weight, 0.0)
+    if mi.is_spectral:
+        # As Mitsuba's films: the mean over the lane's wavelengths of the colour matching
+        # functions times the sampled spectrum (normalised so that Y is luminance), then sRGB.
+        count = len(spectrum)
+        xyz = sum(mi.cie1931_xyz(ray.wavelengths[i]) * spectrum[i] for i in range(count)) \
+            * (mi.MI_CIE_Y_NORMALIZATION / count)
+        colour = mi.xyz_to_srgb(xyz)
+        return [colour.x, colour.y, colour.z]
+    return [spectrum[i] for i in range(len(spectrum))]
+
+
 def film_mean_pixel_variance(images: list) -> float:
     """The film's mean of the report's per-pixel variance
     (:func:`~mitsuba_shsampling.report.metrics.pixel_variance`: unbiased across the K >= 2
-    ``images``, channels averaged over the finite ones, 0 where none is) of K pilot images
-    (tensors (H, W, C)), in float64 where the images are.
+    ``images``, channels averaged over the finite ones, 0 where none is) of K pilot images,
+    in float64 where the images are: tensors (H, W, C), or lists of C arrays of a
+    :func:`camera_sample_pass` (a lane for a pixel).
 
     Why not in numpy: the images' copies to the host and the numpy passes over them cost
     more than the pilots' kernels at high resolution (1920 x 1440: 5.4 s of the plan's 11.3 s
     of pilots; docs/MEASUREMENTS.md)."""
     count = len(images)
-    height, width, channels = (int(n) for n in dr.shape(images[0]))
-    values = [mi.Float64(image.array) for image in images]
-    pixel = dr.arange(mi.UInt32, height * width) * channels
-    total, finite = dr.zeros(mi.Float64, height * width), dr.zeros(mi.UInt32, height * width)
-    for channel in range(channels):
-        x = [dr.gather(mi.Float64, v, pixel + channel) for v in values]
+    channels = [_channels(image) for image in images]
+    pixels = dr.width(channels[0][0])
+    total, finite = dr.zeros(mi.Float64, pixels), dr.zeros(mi.UInt32, pixels)
+    for channel in range(len(channels[0])):
+        x = [image[channel] for image in channels]
         mean = sum(x) / count
         ok = dr.all([dr.isfinite(v) for v in x])
         variance = sum(dr.square(v - mean) for v in x) / (count - 1)
@@ -128,8 +178,18 @@ def film_mean_pixel_variance(images: list) -> float:
     return float(dr.mean(per_pixel).numpy()[0])
 
 
+def _channels(image) -> list:
+    """An image's channels as float64 arrays, a pixel a lane."""
+    if isinstance(image, (list, tuple)):
+        return [mi.Float64(channel) for channel in image]
+    height, width, channels = (int(n) for n in dr.shape(image))
+    values, pixel = mi.Float64(image.array), dr.arange(mi.UInt32, height * width) * channels
+    return [dr.gather(mi.Float64, values, pixel + channel) for channel in range(channels)]
+
+
 def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], object],
-                       repeats: int = PILOT_REPEATS, spp: int = 1, timed: bool = True) -> Pilots:
+                       repeats: int = PILOT_REPEATS, spp: int = 1, timed: bool = True,
+                       film_factor: float = 1.0) -> Pilots:
     """Pass time (s) and image variance per candidate: ``candidates`` maps a name to
     the :class:`Candidate` it runs; ``render_pass(seed)`` renders one pass, waits, and returns its image (or None).
     ``timed``: one warm-up pass per kernel, then ``repeats`` timed rounds, candidates
@@ -137,7 +197,8 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
     (:func:`~mitsuba_shsampling.timing.kernel_time`). Otherwise ``repeats`` rounds of
     images and no time (``pass_time`` empty). Every round has its own seed
     (:data:`PILOT_SEED`), and each pass's image counts towards its candidate's variance
-    (warm-ups included: only their time is compile-bound). ``env`` is left as it was found."""
+    (warm-ups included: only their time is compile-bound); ``film_factor``: the images'
+    (:attr:`Pilots.film_factor`). ``env`` is left as it was found."""
     table = env.strategies
     saved = {key: table.of(key) for key in table.ids}
     warps = env.warp, env.warp_plain
@@ -170,7 +231,7 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
         table.assign(saved)
     # The report's measure of noise (report.metrics): per-pixel variance, channel-averaged.
     variance = {name: film_mean_pixel_variance(i) for name, i in images.items() if len(i) > 1}
-    return Pilots({name: min(t) for name, t in times.items() if t}, variance, spp)
+    return Pilots({name: min(t) for name, t in times.items() if t}, variance, spp, film_factor=film_factor)
 
 
 def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> Callable[[int, int], object]:

@@ -114,7 +114,10 @@ class SHPRBIntegrator(RBIntegrator):
         # The product's warps as built: the plan may drop them, and the plan for the
         # gradients weighs the product again.
         warps = (state.warp, state.warp_plain) if state.awaits_choice else None
-        self.chooser.before_render(state, scene, sensor, pilot_pass, self)
+        def pilot_sample(scene, sampler, ray, active):
+            return self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, active)[:2]
+
+        self.chooser.before_render(state, scene, sensor, pilot_pass, self, pilot_sample)
         if warps is not None:
             plan_for_gradients(self, state, scene, sensor, warps)
         return state
