@@ -22,9 +22,10 @@ from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.chooser import (choose_strategies, confirm_by_timing,  # noqa: E402
                                                     minimise_error_at_equal_time)
 from mitsuba_shsampling.integrators import pilots as pilots_module  # noqa: E402
-from mitsuba_shsampling.integrators.pilots import (LEAN, Candidate, Pilots, calibrate, camera_sample_pass,  # noqa: E402
-                                                   cosine_pilot, film_mean_pixel_variance, film_variance_factor,
-                                                   measure_pass_costs)
+from mitsuba_shsampling.integrators import chooser as chooser_module  # noqa: E402
+from mitsuba_shsampling.integrators.pilots import (FILM_PILOT_PIXELS, LEAN, Candidate, Pilots, calibrate,  # noqa: E402
+                                                   camera_sample_pass, cosine_pilot, film_mean_pixel_variance,
+                                                   film_variance_factor, measure_pass_costs)
 from mitsuba_shsampling.integrators.quadrature import camera_frames, frame_variances  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
@@ -412,12 +413,14 @@ def test_a_camera_sample_pass_estimates_the_films_mean_at_any_resolution(size, l
     assert per_channel == pytest.approx(image.reshape(-1, 3).mean(axis=0), rel=0.02)
 
 
-def test_the_default_plans_pilots_are_one_recording_replayed(monkeypatch):
-    """Every pilot of the default plan (each strategy, each round) replays one dr.freeze
-    recording: a film pass recorded twice (Mitsuba's sampler holds other arrays after its
-    first render), a camera-sample pass forks its own sampler."""
-    recordings = []
-    freeze = pilots_module.dr.freeze
+@pytest.mark.parametrize("size", [32, 520])
+def test_the_default_plan_pilots_a_large_film_by_camera_samples_one_recording_replayed(monkeypatch, size):
+    """A film of at most FILM_PILOT_PIXELS pixels is piloted by film passes (the statistics
+    the realistic scenes' plans were measured with); a larger one by camera-sample passes of
+    as many lanes, which cost the same at any resolution, all replaying one dr.freeze
+    recording, and whose variances confirm the quadrature as the film passes' do."""
+    recordings, camera_passes = [], []
+    freeze, camera_sample_pass = pilots_module.dr.freeze, chooser_module.camera_sample_pass
 
     def counted(function, **kwargs):
         frozen = freeze(function, **kwargs)
@@ -429,10 +432,21 @@ def test_the_default_plans_pilots_are_one_recording_replayed(monkeypatch):
         call.clear = frozen.clear
         return call
 
+    def camera_pass(*args, **kwargs):  # runs only where a pass is traced
+        camera_passes.append(args[3])
+        return camera_sample_pass(*args, **kwargs)
+
     monkeypatch.setattr(pilots_module.dr, "freeze", counted)
-    scene = floor_scene({"type": "roughconductor", "alpha": 0.1}, WINDOW)
+    monkeypatch.setattr(chooser_module, "camera_sample_pass", camera_pass)
+    scene = floor_scene({"type": "diffuse"}, WINDOW, size=size)
     choice = mi.load_dict({"type": "sh_direct", "plan_file": ""}).plan(scene)
-    assert len(choice.pilot_variance) == 3 and len(recordings) == 9 and set(recordings) == {1}
+    assert len(choice.pilot_variance) == 3 and len(recordings) == 9
+    if size * size <= FILM_PILOT_PIXELS:
+        assert camera_passes == []
+        return
+    assert len(camera_passes) == 1 and set(recordings) == {1}  # traced once, replayed by every pass
+    for name, (predicted, measured) in choice.pilot_variance.items():
+        assert measured == pytest.approx(predicted, rel=0.15), name
 
 
 def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():

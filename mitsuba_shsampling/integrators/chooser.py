@@ -51,8 +51,8 @@ import numpy as np
 
 from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
-from .pilots import (LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate, camera_sample_pass,
-                     cosine_pilot, film_variance_factor, frozen_pilots, measure_pass_costs)
+from .pilots import (FILM_PILOT_PIXELS, LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
+                     camera_sample_pass, cosine_pilot, film_variance_factor, frozen_pilots, measure_pass_costs)
 from .quadrature import PRODUCT_ONLY_SHARED, camera_frames, frame_variances
 from . import plan_file
 from .strategy import ESTIMATE, MEASURE, Strategy, strategy_named
@@ -695,10 +695,11 @@ class StrategyChooser:
                                  f"{env.choice.summary()}")
 
     def _choose(self, env, scene, sensor, render, integrator, sample) -> StrategyChoice:
-        # Untimed pilots are camera samples, and differ only in the strategy table, which is
-        # device data: one recording replays them all (pilots.frozen_pilots). Timed pilots
-        # include the lean kernel, another trace: they render film passes traced.
-        samples = self.mode == ESTIMATE and sample is not None
+        # Untimed pilots differ only in the strategy table, which is device data: one recording
+        # replays them all (pilots.frozen_pilots); on a large film they are camera samples.
+        # Timed pilots include the lean kernel, another trace: they render film passes traced.
+        size = sensor.film().crop_size()
+        samples = self.mode == ESTIMATE and sample is not None and int(size[0]) * int(size[1]) > FILM_PILOT_PIXELS
         if samples:
             render = lambda spp, seed: camera_sample_pass(scene, sensor, sample, seed)  # noqa: E731
         replay = frozen_pilots(render, env, (scene, sensor, integrator)) if self.mode == ESTIMATE else render

@@ -6,11 +6,12 @@ other emitters, deeper vertices) and how far each strategy's prediction is off
 (:func:`calibrate`). Their seeds are fixed (:data:`PILOT_SEED`), so the same scene
 gives the same images, and the same plan, in every process.
 
-The default plan's pilots are camera samples (:func:`camera_sample_pass`): one
-integrator sample at each of :data:`PILOT_LANES` film positions spread over the
-film, whatever its resolution, and no film. Timed, the pilots are whole film passes
-instead, which also measure each strategy's cost in the scene (``plan`` ``measure``,
-and the per-machine calibration of :mod:`.costs`): the default plan times nothing.
+The default plan's pilots are film passes up to :data:`FILM_PILOT_PIXELS` pixels, and
+above it camera samples (:func:`camera_sample_pass`): one integrator sample at each of
+that many film positions spread over the film, and no film, so that a pilot costs no more
+at 1920 x 1080 than at 640 x 400. Timed, the pilots are whole film passes, which also
+measure each strategy's cost in the scene (``plan`` ``measure``, and the per-machine
+calibration of :mod:`.costs`): the default plan times nothing.
 """
 
 from __future__ import annotations
@@ -28,8 +29,15 @@ from ..timing import kernel_time
 from .strategy import Strategy
 
 PILOT_LANES = 2**17
-"""Camera samples per pilot pass: film positions of a camera-sample pass
-(:func:`camera_sample_pass`); a timed film pass rounds its spp up to at least this many."""
+"""Camera samples per film pilot pass at least (spp is rounded up so that the film gets this many)."""
+
+FILM_PILOT_PIXELS = 2**18
+"""Films of at most this many pixels are piloted by film passes; larger ones by camera-sample
+passes of this many lanes (:func:`camera_sample_pass`). Not fewer: the pilots' variance is
+heavy-tailed where a strategy has rare large samples, and fewer samples mostly miss them. With
+2^17 lanes on a 480 x 360 film (172,800 px) the product's variance came out 0.5-0.8 of the
+quadrature's in five seeds against 0.7-1.9 from film passes, the plan put one more material on
+the product, and it lost at equal time (docs/MEASUREMENTS.md, "The pilots as camera samples")."""
 
 PILOT_REPEATS = 4
 """Timed pilot passes per strategy (interleaved; the fastest counts: whatever else
@@ -112,7 +120,8 @@ def film_variance_factor(film: mi.Film, spp: int) -> float:
     return ratio ** 2 / spp
 
 
-def camera_sample_pass(scene: mi.Scene, sensor: mi.Sensor, sample: Callable, seed, lanes: int = PILOT_LANES) -> list:
+def camera_sample_pass(scene: mi.Scene, sensor: mi.Sensor, sample: Callable, seed,
+                       lanes: int = FILM_PILOT_PIXELS) -> list:
     """One camera sample at each of ``lanes`` film positions, as Mitsuba's
     ``SamplingIntegrator`` takes one (a uniform position in the pixel, then the aperture,
     time and wavelength samples; the ray weighted by the sensor's), through ``sample(scene,
@@ -122,9 +131,11 @@ def camera_sample_pass(scene: mi.Scene, sensor: mi.Sensor, sample: Callable, see
     The positions are the film's pixels in raster order, ``lanes`` of them evenly strided
     where the film has more (1280 x 960: every 9.4th), each pixel as often as it takes where
     it has fewer. So a pass costs the same at every resolution, and develops no film (at
-    1280 x 960 a film pass of the same scene costs 12x as much; docs/MEASUREMENTS.md). The
+    1280 x 960 a film pass of the same scene costs 7x as much; docs/MEASUREMENTS.md). The
     sampler is the sensor's, forked and seeded with ``seed`` for ``lanes`` lanes: the same
-    seed draws the same numbers whatever each material runs (common random numbers)."""
+    seed draws the same numbers whatever each material runs (common random numbers). One
+    recording replays every such pass (a film pass records twice: Mitsuba's sampler holds other
+    arrays after its first render)."""
     size = sensor.film().crop_size()
     width, pixels = int(size[0]), int(size[0]) * int(size[1])
     sampler = sensor.sampler().fork()
