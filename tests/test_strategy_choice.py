@@ -449,6 +449,23 @@ def test_the_default_plan_pilots_a_large_film_by_camera_samples_one_recording_re
         assert measured == pytest.approx(predicted, rel=0.15), name
 
 
+@pytest.mark.parametrize("plugin", ["sh_path", "sh_prb"])
+def test_the_path_plugins_pilot_a_large_film_by_camera_samples_as_well(monkeypatch, plugin):
+    """Each plugin gives the pilots its own sample of a camera ray (``sh_prb``'s in primal mode)."""
+    camera_passes, camera_sample_pass = [], chooser_module.camera_sample_pass
+
+    def camera_pass(*args, **kwargs):
+        camera_passes.append(args[3])
+        return camera_sample_pass(*args, **kwargs)
+
+    monkeypatch.setattr(chooser_module, "camera_sample_pass", camera_pass)
+    scene = floor_scene({"type": "diffuse"}, WINDOW, size=520)
+    choice = mi.load_dict({"type": plugin, "max_depth": 2, "plan_file": ""}).plan(scene)
+    assert camera_passes and set(choice.pilot_variance) == {E.label, P.label}
+    for name, (predicted, measured) in choice.pilot_variance.items():
+        assert measured == pytest.approx(predicted, rel=0.15), name
+
+
 def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():
     """Common random numbers: what the strategies share cancels where pilots are compared."""
     scene = floor_scene({"type": "diffuse"}, WINDOW)
