@@ -466,6 +466,18 @@ def test_the_path_plugins_pilot_a_large_film_by_camera_samples_as_well(monkeypat
         assert measured == pytest.approx(predicted, rel=0.15), name
 
 
+def test_the_quadrature_of_some_frames_is_their_rows_of_the_quadrature_of_all():
+    """The chooser's second quadrature (the cosine lobes walked) runs at the cosine
+    materials' frames alone: each frame draws what it drew among all, so the plan is the
+    one the quadrature over every frame makes, bit for bit."""
+    scene = floor_scene({"type": "roughplastic", "alpha": 0.2}, WINDOW)
+    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
+    si, bsdf, _ = camera_frames(scene, scene.sensors()[0])
+    every = frame_variances(env, si, bsdf, 1, 1)
+    some = np.arange(3, dr.width(si), 7)
+    assert np.array_equal(frame_variances(env, si, bsdf, 1, 1, frames=some), every[some], equal_nan=True)
+
+
 def test_the_pilots_of_one_round_share_a_seed_and_the_rounds_differ():
     """Common random numbers: what the strategies share cancels where pilots are compared."""
     scene = floor_scene({"type": "diffuse"}, WINDOW)

@@ -348,13 +348,16 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
     variances = frame_variances(env, si, bsdf, n_e, n_b)
     keys = np.broadcast_to(dr.reinterpret_array(mi.UInt32, bsdf).numpy(), (dr.width(si),)) \
         if dr.width(si) else np.zeros(0, dtype=np.uint32)
-    if env.cosine_tables:
-        # The cosine lobes' SH walks: the same kernel with no lobe read from the tables (device
-        # data), not another traced without the tables' code (0.8 s of a cold plan's compiling).
+    cosine_frames = np.flatnonzero(np.isin(keys, list(env.lobes.cosine_ids))) if env.cosine_tables else []
+    if len(cosine_frames):
+        # The cosine lobes' SH walks at their own frames (as they were in the call over all):
+        # the same kernel with no lobe read from the tables (device data), not another traced
+        # without the tables' code (0.8 s of a cold plan's compiling).
         tabled = set(env.lobes.tabled_ids)
         env.lobes.sample_from_tables(set())
         try:
-            walked = frame_variances(env, si, bsdf, n_e, n_b)
+            walked = variances.copy()
+            walked[cosine_frames] = frame_variances(env, si, bsdf, n_e, n_b, frames=cosine_frames)
         finally:
             env.lobes.sample_from_tables(tabled)
         variances = choose_cosine_sampling(env, variances, walked, keys)

@@ -23,6 +23,9 @@ from .estimators import environment_ray_target
 from .options import sample_shares
 from .strategy import Strategy
 
+PCG32_DEFAULT_STREAM = 0xDA3E39CB94B95BDB
+"""Dr.Jit's ``PCG32`` stream (``initseq``) when none is given."""
+
 FRAMES = 4096
 """Camera shading points at most (a stratified grid over the film)."""
 
@@ -59,7 +62,7 @@ def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
 
 
 def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int, n_b: int,
-                    directions: int = DIRECTIONS, seed: int = 0) -> np.ndarray:
+                    directions: int = DIRECTIONS, seed: int = 0, frames: np.ndarray | None = None) -> np.ndarray:
     """Variance of the environment estimator at each shading point, per strategy.
 
     The product of a cosine lobe is its table's where the lobes say so
@@ -78,28 +81,36 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     samples per point from an equal mixture of the BSDF's sampling, the two
     environment strategies and the two products (so that the sun, the lobe and
     the BSDF's own peak are all found), with the balance heuristic over it.
+
+    ``frames``: the rows of ``si`` to estimate (default: all); each draws the random numbers
+    it draws in the call over all of them, so a subset's rows are that call's rows.
     """
-    points = dr.width(si)
-    if points == 0:
+    if frames is None:
+        frames = np.arange(dr.width(si))
+    if len(frames) == 0:
         return np.zeros((0, len(Strategy)))
-    samples = mixture_samples(env, si, bsdf, directions, seed)
+    samples = mixture_samples(env, si, bsdf, directions, seed, device_array(mi.UInt32, frames.astype(np.uint32)))
     return strategy_variances(samples, n_e, n_b, env.warp is not None, env.warp_plain is not None)
 
 
-def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directions: int, seed: int) -> dict:
-    """``directions`` directions per shading point from the equal mixture of
-    :func:`frame_variances`, on the device; returns, as float64 device arrays of a block of
-    ``directions`` lanes per point, the integrand per channel (``channels``), the mixture's
-    pdf (``q``) and each strategy's pdf, whether each lane's point has a product lobe
-    (``lobed``), and ``directions``."""
-    points = dr.width(si)
-    lanes = points * directions
+def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directions: int, seed: int,
+                    frames: mi.UInt32) -> dict:
+    """``directions`` directions per shading point (the rows ``frames`` of ``si``) from the
+    equal mixture of :func:`frame_variances`, on the device; returns, as float64 device arrays
+    of a block of ``directions`` lanes per point, the integrand per channel (``channels``), the
+    mixture's pdf (``q``) and each strategy's pdf, whether each lane's point has a product lobe
+    (``lobed``), and ``directions``. A lane's random numbers and mixture component are those of
+    its place among every row's lanes (``row * directions + k``), whichever rows are asked."""
+    lanes = dr.width(frames) * directions
     index = dr.arange(mi.UInt32, lanes)
-    frame = index // directions
-    component = index % 5
+    frame = dr.gather(mi.UInt32, frames, index // directions)
+    lane = frame * directions + index % directions
+    component = lane % 5
     si = dr.gather(mi.SurfaceInteraction3f, si, frame)
     bsdf = dr.gather(mi.BSDFPtr, bsdf, frame)
-    rng = mi.PCG32(lanes, seed)
+    # PCG32 adds arange(lanes) to both its state and its stream: offset each lane to its own place.
+    offset = mi.UInt64(lane) - mi.UInt64(index)
+    rng = mi.PCG32(lanes, mi.UInt64(seed) + offset, mi.UInt64(PCG32_DEFAULT_STREAM) + offset)
     u0, u = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
 
     ctx = mi.BSDFContext()
