@@ -37,7 +37,7 @@ passes of this many lanes (:func:`camera_sample_pass`). Not fewer: the pilots' v
 heavy-tailed where a strategy has rare large samples, and fewer samples mostly miss them. With
 2^17 lanes on a 480 x 360 film (172,800 px) the product's variance came out 0.5-0.8 of the
 quadrature's in five seeds against 0.7-1.9 from film passes, the plan put one more material on
-the product, and it lost at equal time (docs/MEASUREMENTS.md, "The pilots as camera samples")."""
+the product, and it lost at equal time (docs/MEASUREMENTS.md, "The pilots as camera samples on large films")."""
 
 PILOT_REPEATS = 4
 """Timed pilot passes per strategy (interleaved; the fastest counts: whatever else
@@ -129,9 +129,9 @@ def camera_sample_pass(scene: mi.Scene, sensor: mi.Sensor, sample: Callable, see
     (linear sRGB; one channel in mono variants), a list of arrays, invalid samples 0.
 
     The positions are the film's pixels in raster order, ``lanes`` of them evenly strided
-    where the film has more (1280 x 960: every 9.4th), each pixel as often as it takes where
+    where the film has more (1280 x 960: every 4.7th), each pixel as often as it takes where
     it has fewer. So a pass costs the same at every resolution, and develops no film (at
-    1280 x 960 a film pass of the same scene costs 7x as much; docs/MEASUREMENTS.md). The
+    1280 x 960 a film pass of the same scene costs 6-7x as much; docs/MEASUREMENTS.md). The
     sampler is the sensor's, forked and seeded with ``seed`` for ``lanes`` lanes: the same
     seed draws the same numbers whatever each material runs (common random numbers). One
     recording replays every such pass (a film pass records twice: Mitsuba's sampler holds other
