@@ -413,14 +413,27 @@ def test_a_camera_sample_pass_estimates_the_films_mean_at_any_resolution(size, l
     assert per_channel == pytest.approx(image.reshape(-1, 3).mean(axis=0), rel=0.02)
 
 
+@pytest.fixture
+def camera_passes(monkeypatch):
+    """The seeds of the camera-sample passes the chooser traces (a replayed pass runs no Python)."""
+    seeds, camera_sample_pass = [], chooser_module.camera_sample_pass
+
+    def camera_pass(*args, **kwargs):
+        seeds.append(args[3])
+        return camera_sample_pass(*args, **kwargs)
+
+    monkeypatch.setattr(chooser_module, "camera_sample_pass", camera_pass)
+    return seeds
+
+
 @pytest.mark.parametrize("size", [32, 520])
-def test_the_default_plan_pilots_a_large_film_by_camera_samples_one_recording_replayed(monkeypatch, size):
+def test_the_default_plan_pilots_a_large_film_by_camera_samples_one_recording_replayed(monkeypatch, camera_passes,
+                                                                                        size):
     """A film of at most FILM_PILOT_PIXELS pixels is piloted by film passes (the statistics
     the realistic scenes' plans were measured with); a larger one by camera-sample passes of
     as many lanes, which cost the same at any resolution, all replaying one dr.freeze
     recording, and whose variances confirm the quadrature as the film passes' do."""
-    recordings, camera_passes = [], []
-    freeze, camera_sample_pass = pilots_module.dr.freeze, chooser_module.camera_sample_pass
+    recordings, freeze = [], pilots_module.dr.freeze
 
     def counted(function, **kwargs):
         frozen = freeze(function, **kwargs)
@@ -432,12 +445,7 @@ def test_the_default_plan_pilots_a_large_film_by_camera_samples_one_recording_re
         call.clear = frozen.clear
         return call
 
-    def camera_pass(*args, **kwargs):  # runs only where a pass is traced
-        camera_passes.append(args[3])
-        return camera_sample_pass(*args, **kwargs)
-
     monkeypatch.setattr(pilots_module.dr, "freeze", counted)
-    monkeypatch.setattr(chooser_module, "camera_sample_pass", camera_pass)
     scene = floor_scene({"type": "diffuse"}, WINDOW, size=size)
     choice = mi.load_dict({"type": "sh_direct", "plan_file": ""}).plan(scene)
     assert len(choice.pilot_variance) == 3 and len(recordings) == 9
@@ -450,15 +458,8 @@ def test_the_default_plan_pilots_a_large_film_by_camera_samples_one_recording_re
 
 
 @pytest.mark.parametrize("plugin", ["sh_path", "sh_prb"])
-def test_the_path_plugins_pilot_a_large_film_by_camera_samples_as_well(monkeypatch, plugin):
+def test_the_path_plugins_pilot_a_large_film_by_camera_samples_as_well(camera_passes, plugin):
     """Each plugin gives the pilots its own sample of a camera ray (``sh_prb``'s in primal mode)."""
-    camera_passes, camera_sample_pass = [], chooser_module.camera_sample_pass
-
-    def camera_pass(*args, **kwargs):
-        camera_passes.append(args[3])
-        return camera_sample_pass(*args, **kwargs)
-
-    monkeypatch.setattr(chooser_module, "camera_sample_pass", camera_pass)
     scene = floor_scene({"type": "diffuse"}, WINDOW, size=520)
     choice = mi.load_dict({"type": plugin, "max_depth": 2, "plan_file": ""}).plan(scene)
     assert camera_passes and set(choice.pilot_variance) == {E.label, P.label}
