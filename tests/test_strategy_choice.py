@@ -25,7 +25,8 @@ from mitsuba_shsampling.integrators import pilots as pilots_module  # noqa: E402
 from mitsuba_shsampling.integrators import chooser as chooser_module  # noqa: E402
 from mitsuba_shsampling.integrators.pilots import (FILM_PILOT_PIXELS, LEAN, Candidate, Pilots, calibrate,  # noqa: E402
                                                    camera_sample_pass, cosine_pilot, film_mean_pixel_variance,
-                                                   film_variance_factor, measure_pass_costs)
+                                                   film_variance_and_error, film_variance_factor,
+                                                   measure_pass_costs, weighed_calibration)
 from mitsuba_shsampling.integrators.quadrature import camera_frames, frame_variances  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
@@ -330,6 +331,23 @@ def test_the_pilots_measure_the_reports_per_pixel_variance_where_the_images_are(
     assert film_mean_pixel_variance([mi.TensorXf(i) for i in images]) == pytest.approx(expected, rel=1e-12)
 
 
+def test_the_pilots_film_variance_comes_with_its_standard_error_over_the_pixels():
+    """The error is the per-pixel variances' spread over the square root of the pixels: a
+    film whose variance sits in a few pixels is measured more loosely than one that spreads
+    the same variance evenly."""
+    rng = np.random.default_rng(1)
+    even = rng.normal(size=(3, 40, 50, 3))
+    spiky = even * np.where(rng.random((40, 50, 1)) < 0.01, 10.0, 1.0)
+    for images in (even, spiky):
+        per_pixel = pixel_variance(images)
+        mean, error = film_variance_and_error([mi.TensorXf(i.astype(np.float32)) for i in images])
+        assert mean == pytest.approx(np.mean(per_pixel), rel=1e-6)
+        assert error == pytest.approx(np.std(per_pixel, ddof=1) / np.sqrt(per_pixel.size), rel=1e-5)
+    relative = [film_variance_and_error([mi.TensorXf(i.astype(np.float32)) for i in images])
+                for images in (even, spiky)]
+    assert relative[1][1] / relative[1][0] > 3 * relative[0][1] / relative[0][0]
+
+
 #: A diffuse floor whose albedo alternates 400 times across the view: within a pixel the
 #: texture varies more than the lighting estimate does.
 FINE_CHECKER = {"type": "diffuse", "reflectance": {"type": "checkerboard", "color0": 0.05, "color1": 0.9,
@@ -384,6 +402,31 @@ def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_meas
     calibrate(pilots, {E.label: 9.5, P.label: 2.5}, model, candidates, variance, rest=0.5)
     assert pilots.shared_variance == pytest.approx(2.5)
     assert pilots.calibration[E] == pytest.approx((9.5 - 2.5) / 6.5) == pilots.calibration[EO]
+
+
+def test_a_calibration_factor_is_weighed_against_the_quadrature_by_how_closely_it_was_measured():
+    """A factor measured closely stays as measured; one within the pilots' noise moves to the
+    quadrature's 1; halfway where the measurement's error equals the prior's."""
+    sd = pilots_module.CALIBRATION_PRIOR_SD
+    assert weighed_calibration(2.0, 1e-4) == pytest.approx(2.0, abs=1e-5)
+    assert weighed_calibration(0.3, 100 * sd) == pytest.approx(1.0, abs=1e-3)
+    assert weighed_calibration(0.5, sd) == pytest.approx(0.75)
+    assert weighed_calibration(0.5, float("inf")) == 1.0
+
+
+def test_a_product_pilot_lost_in_shared_variance_leaves_the_quadrature_as_it_was():
+    """The product's part of its pilot is what is left after ``S`` and the other materials':
+    where the films' errors are as large as that part, the factor is (nearly) 1, not what the
+    noise made of it; where they are small, the pilots' factor stands."""
+    variance = {1: {E: 4.0, P: 1.0}, 2: {E: 2.0, P: 2.0}}
+    candidates = {E.label: Candidate({1: E, 2: E}), P.label: Candidate({1: P, 2: E})}
+    model = {E.label: 0.5 + 6.0, P.label: 0.5 + 1.0 + 2.0}
+    measured = {E.label: 9.5, P.label: 3.0 + 0.5 + 0.4 * 1.0 + 2.0}  # S = 3, the product at 0.4x
+    pilots = Pilots({}, spp=1)
+    calibrate(pilots, measured, model, candidates, variance, rest=0.5, errors={E.label: 1e-3, P.label: 1e-3})
+    assert pilots.calibration[P] == pytest.approx(0.5, abs=0.01)  # 0.4, within CALIBRATION_RANGE
+    calibrate(pilots, measured, model, candidates, variance, rest=0.5, errors={E.label: 2.0, P.label: 1.0})
+    assert 0.95 < pilots.calibration[P] < 1.0
 
 
 #: A floor in four large tiles: an image whose mean a partial cover of the film would miss.

@@ -447,8 +447,9 @@ def calibrated(p: Predictions, pilots: Pilots, candidates: dict):
     model = {name: p.rest + sum(p.variance[k][c.assignment[k]] for k in p.materials)
              for name, c in candidates.items()}
     measured = {name: v / pilots.film_factor for name, v in pilots.image_variance.items() if name in model}
+    errors = {name: e / pilots.film_factor for name, e in pilots.image_variance_error.items() if name in model}
     if pilots.shared_variance is None:
-        calibrate(pilots, measured, model, candidates, p.variance, p.rest)
+        calibrate(pilots, measured, model, candidates, p.variance, p.rest, errors)
         pilots.shared_variance = rounded(pilots.shared_variance)
         pilots.calibration = {s: rounded(f) for s, f in pilots.calibration.items()}
     shared = pilots.shared_variance
