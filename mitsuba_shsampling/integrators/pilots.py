@@ -186,7 +186,7 @@ def film_variance_and_error(images: list) -> tuple[float, float]:
     It says how well the pilots measured the film's variance: where a strategy has rare large
     samples, a few pixels hold much of it (on the studio under studio_small_03 the 10 brightest
     of 172,800 pixels hold 13-40 %). Over eight pilot seeds in six realistic and sphere cells,
-    each pilot's film mean scattered by 0.42-1.25x (median 0.84x) this error's mean: a little
+    each pilot's film mean scattered by 0.42-1.25x (median 0.83x) this error's mean: a little
     more than the scatter where the pixels' fixed spread counts, a little less where a filter's
     neighbouring pixels share samples (docs/MEASUREMENTS.md, "A calibration weighed by its
     error"). It is itself an estimate from those pixels, so it is low where the rare samples
