@@ -26,7 +26,8 @@ from mitsuba_shsampling.integrators import chooser as chooser_module  # noqa: E4
 from mitsuba_shsampling.integrators.pilots import (FILM_PILOT_PIXELS, LEAN, Candidate, Pilots, calibrate,  # noqa: E402
                                                    camera_sample_pass, cosine_pilot, film_mean_pixel_variance,
                                                    film_variance_and_error, film_variance_factor,
-                                                   measure_pass_costs, weighed_calibration)
+                                                   independent_errors, measure_pass_costs, paired_errors,
+                                                   weighed_calibration)
 from mitsuba_shsampling.integrators.quadrature import camera_frames, frame_variances  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.options import DirectOptions, OptionError, PathOptions  # noqa: E402
@@ -384,6 +385,14 @@ def test_the_pilots_run_what_they_time_and_their_images_confirm_the_quadrature(r
     assert choice.pilot_variance[PO.label][1] < 0.5 * choice.pilot_variance[P.label][1]
     # So the pilots leave the quadrature's variances nearly as they were.
     assert all(0.85 < factor < 1.15 for factor in choice.pilots.calibration.values())
+    # And on the floor's own pixels (all of them) each product pilot measured the variance it
+    # removes as the quadrature predicted it.
+    (by_strategy,) = choice.pilots.by_material.values()
+    assert set(by_strategy) == {P, PO}
+    for strategy, m in by_strategy.items():
+        row = dict(m.quadrature)
+        predicted = row[E.label] - row[strategy.label]
+        assert m.difference == pytest.approx(predicted, rel=0.15, abs=3 * m.error), strategy
 
 
 def test_the_pilots_scale_a_strategys_predicted_variance_to_what_its_images_measured():
@@ -423,9 +432,11 @@ def test_a_product_pilot_lost_in_shared_variance_leaves_the_quadrature_as_it_was
     model = {E.label: 0.5 + 6.0, P.label: 0.5 + 1.0 + 2.0}
     measured = {E.label: 9.5, P.label: 3.0 + 0.5 + 0.4 * 1.0 + 2.0}  # S = 3, the product at 0.4x
     pilots = Pilots({}, spp=1)
-    calibrate(pilots, measured, model, candidates, variance, rest=0.5, errors={E.label: 1e-3, P.label: 1e-3})
+    calibrate(pilots, measured, model, candidates, variance, rest=0.5,
+              errors=independent_errors({E.label: 1e-3, P.label: 1e-3}))
     assert pilots.calibration[P] == pytest.approx(0.5, abs=0.01)  # 0.4, within CALIBRATION_RANGE
-    calibrate(pilots, measured, model, candidates, variance, rest=0.5, errors={E.label: 2.0, P.label: 1.0})
+    calibrate(pilots, measured, model, candidates, variance, rest=0.5,
+              errors=independent_errors({E.label: 2.0, P.label: 1.0}))
     assert 0.95 < pilots.calibration[P] < 1.0
 
 

@@ -16,7 +16,10 @@ with
   other emitters, Dirac paths, a path tracer's deeper vertices): what the pilot
   images have beyond the quadrature's prediction (:mod:`.pilots`). The product
   pilots' images also scale each product strategy's predictions to what they
-  measured. Pilot seeds are fixed, and what the pilots give is rounded to
+  measured, and on each material's own pixels measure how much variance the
+  strategy removes there, which is weighed against the quadrature's figure
+  (:mod:`.material_pilots`: the quadrature can miss a highlight that a few pixels
+  hold). Pilot seeds are fixed, and what the pilots give is rounded to
   :data:`SIGNIFICANT_DIGITS`: the same scene gives the same figures in every process.
 - ``P_env`` and ``dP(s)``: the pass time with every material on the environment
   strategy, and the extra time per unit film share of material ``m`` on strategy
@@ -52,7 +55,9 @@ import numpy as np
 from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
 from .pilots import (FILM_PILOT_PIXELS, LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
-                     camera_sample_pass, cosine_pilot, film_variance_factor, frozen_pilots, measure_pass_costs)
+                     camera_sample_pass, cosine_pilot, film_variance_factor, frozen_pilots, independent_errors,
+                     measure_pass_costs, paired_errors)
+from .material_pilots import lane_materials, material_differences, refine
 from .quadrature import PRODUCT_ONLY_SHARED, camera_frames, frame_variances
 from . import plan_file
 from .strategy import ESTIMATE, MEASURE, Strategy, strategy_named
@@ -447,15 +452,32 @@ def calibrated(p: Predictions, pilots: Pilots, candidates: dict):
     model = {name: p.rest + sum(p.variance[k][c.assignment[k]] for k in p.materials)
              for name, c in candidates.items()}
     measured = {name: v / pilots.film_factor for name, v in pilots.image_variance.items() if name in model}
-    errors = {name: e / pilots.film_factor for name, e in pilots.image_variance_error.items() if name in model}
+    if pilots.pixel_variance:
+        errors = paired_errors(pilots.pixel_variance, pilots.film_factor)
+    else:  # pilots made without their pixels (tests): each film's own error
+        errors = independent_errors({name: e / pilots.film_factor for name, e in pilots.image_variance_error.items()})
     if pilots.shared_variance is None:
         calibrate(pilots, measured, model, candidates, p.variance, p.rest, errors)
         pilots.shared_variance = rounded(pilots.shared_variance)
         pilots.calibration = {s: rounded(f) for s, f in pilots.calibration.items()}
-    shared = pilots.shared_variance
-    fit = {name: (model[name] + shared, measured[name]) for name in measured}
+    fit = {name: (model[name] + pilots.shared_variance, measured[name]) for name in measured}
     variance = {k: {s: v * pilots.calibration.get(s, 1.0) for s, v in row.items()} for k, row in p.variance.items()}
+    variance, shared = refine(variance, pilots.shared_variance, pilots.by_material, p.variance)
     return variance, p.rest * pilots.calibration.get(Strategy.ENVIRONMENT, 1.0), shared, fit
+
+
+def measured_by_material(env, sensor: mi.Sensor, pilots: Pilots, candidates: dict, p: Predictions) -> dict:
+    """What the pilots measured on each material's pixels (:mod:`.material_pilots`), rounded
+    to :data:`SIGNIFICANT_DIGITS` as every figure from the pilots is."""
+    environment = next((n for n in (Strategy.ENVIRONMENT.label, LEAN) if n in pilots.pixel_variance), None)
+    if environment is None:
+        return {}
+    lanes = dr.width(pilots.pixel_variance[environment])
+    by_material = material_differences(pilots, lane_materials(env.scene, sensor, lanes), candidates, p.variance,
+                                       environment)
+    return {k: {s: dataclasses.replace(m, difference=rounded(m.difference), error=rounded(m.error),
+                                       environment=rounded(m.environment)) for s, m in row.items()}
+            for k, row in by_material.items()}
 
 
 def pilot_shares(env, p: Predictions) -> dict:
@@ -524,6 +546,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         fresh = pilots is None  # (pilots of an earlier choice: the scene's parameters changed)
         if fresh:
             pilots = run_pilots(env, sensor, candidates, render_pass, timed, film_factor)
+            pilots.by_material = measured_by_material(env, sensor, pilots, candidates, p)
         variance, rest, shared, fit = calibrated(p, pilots, candidates)
         if timed:
             costs = CostModel.from_pass_times(pilots.pass_time, pilot_shares(env, p), "measured in the scene")

@@ -99,6 +99,12 @@ class Pilots:
     unit): 1 for camera-sample passes, :func:`film_variance_factor` for film passes."""
     image_variance_error: dict = dataclasses.field(default_factory=dict)
     """Pilot -> the standard error of its ``image_variance`` (:func:`film_variance_and_error`)."""
+    pixel_variance: dict = dataclasses.field(default_factory=dict, repr=False)
+    """Pilot -> its per-pixel variances (a lane a pixel, float64, on the device): the
+    standard error of a difference of pilots (:func:`paired_errors`)."""
+    by_material: dict = dataclasses.field(default_factory=dict)
+    """Registry id -> strategy -> what the pilots measured on that material's pixels
+    (:func:`~.material_pilots.material_differences`)."""
     shared_variance: float | None = None
     """``S`` once derived (:func:`calibrate`); kept when the scene's parameters change
     and only the quadrature is redone."""
@@ -139,13 +145,12 @@ def camera_sample_pass(scene: mi.Scene, sensor: mi.Sensor, sample: Callable, see
     recording replays every such pass (a film pass records twice: Mitsuba's sampler holds other
     arrays after its first render)."""
     size = sensor.film().crop_size()
-    width, pixels = int(size[0]), int(size[0]) * int(size[1])
+    width = int(size[0])
     sampler = sensor.sampler().fork()
     sampler.set_sample_count(1)
     sampler.set_samples_per_wavefront(1)
     sampler.seed(seed, lanes)
-    lane = dr.arange(mi.UInt32, lanes)
-    pixel = mi.UInt32(mi.Float64(lane) * (pixels / lanes)) if pixels > lanes else lane % pixels
+    pixel = pilot_pixels(sensor, lanes)
     position = mi.Vector2f(mi.Float(pixel % width), mi.Float(pixel // width)) + sampler.next_2d()
     aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
     time = mi.Float(sensor.shutter_open())
@@ -164,6 +169,16 @@ def camera_sample_pass(scene: mi.Scene, sensor: mi.Sensor, sample: Callable, see
         colour = mi.xyz_to_srgb(xyz)
         return [colour.x, colour.y, colour.z]
     return [spectrum[i] for i in range(len(spectrum))]
+
+
+def pilot_pixels(sensor: mi.Sensor, lanes: int) -> mi.UInt32:
+    """The film pixel (raster order over the crop) of each of ``lanes`` pilot lanes: every
+    pixel in turn where the film has as many (a film pass), evenly strided where it has more,
+    each as often as it takes where it has fewer (:func:`camera_sample_pass`)."""
+    size = sensor.film().crop_size()
+    pixels = int(size[0]) * int(size[1])
+    lane = dr.arange(mi.UInt32, lanes)
+    return mi.UInt32(mi.Float64(lane) * (pixels / lanes)) if pixels > lanes else lane % pixels
 
 
 def film_mean_pixel_variance(images: list) -> float:
@@ -191,7 +206,11 @@ def film_variance_and_error(images: list) -> tuple[float, float]:
     neighbouring pixels share samples (docs/MEASUREMENTS.md, "A calibration weighed by its
     error"). It is itself an estimate from those pixels, so it is low where the rare samples
     were missed altogether."""
-    per_pixel = _per_pixel_variance(images)
+    return _mean_and_error(_per_pixel_variance(images))
+
+
+def _mean_and_error(per_pixel) -> tuple[float, float]:
+    """The mean of a float64 array (a lane a pixel) and its standard error over the lanes."""
     pixels = dr.width(per_pixel)
     sums = dr.sum(per_pixel), dr.sum(dr.square(per_pixel))
     dr.eval(*sums)
@@ -201,6 +220,32 @@ def film_variance_and_error(images: list) -> tuple[float, float]:
     return mean, float(np.sqrt(spread / pixels))
 
 
+def independent_errors(errors: dict) -> Callable[[dict], float]:
+    """The standard error of a combination ``sum_n w_n m_n`` of pilots' film variances
+    (pilot -> weight), taking each pilot's ``errors[n]`` as independent of the others'."""
+    return lambda weights: float(np.sqrt(sum((w * errors.get(name, 0.0)) ** 2 for name, w in weights.items())))
+
+
+def paired_errors(pixel_variance: dict, scale: float = 1.0) -> Callable[[dict], float]:
+    """The standard error of a combination ``sum_n w_n m_n`` of pilots' film variances
+    (pilot -> weight), each ``m_n`` the film mean of ``pixel_variance[n]`` over ``scale``:
+    the spread over the pixels of the per-pixel combination, over the square root of the
+    pixels.
+
+    Why paired: the pilots of a round share their random numbers, so a pixel that a rare
+    path (a caustic, a texture edge, an antialiasing sample across a bright edge) makes
+    noisy is noisy in every pilot. Their difference, the product's own part of its film,
+    is then measured far more closely than the pilots' errors taken as independent say: on
+    the material studio at 256 x 192, where two thirds of the film's variance is shared,
+    independent errors put the product's calibration at 0.37 +- 1.65 and left it to the
+    quadrature, and the plan that followed lost a quarter of the measured gain
+    (docs/MEASUREMENTS.md, "A calibration weighed by its error")."""
+    def error(weights: dict) -> float:
+        terms = [(w, pixel_variance[name]) for name, w in weights.items() if w != 0.0]
+        if not terms:
+            return 0.0
+        return _mean_and_error(sum(w * v for w, v in terms))[1] / scale
+    return error
 def _per_pixel_variance(images: list):
     """Per pixel (a lane), the unbiased variance across ``images``, channels averaged over the
     finite ones, 0 where none is (float64)."""
@@ -270,9 +315,12 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
         env.pilot_walks = False
         table.assign(saved)
     # The report's measure of noise (report.metrics): per-pixel variance, channel-averaged.
-    measured = {name: film_variance_and_error(i) for name, i in images.items() if len(i) > 1}
+    per_pixel = {name: _per_pixel_variance(i) for name, i in images.items() if len(i) > 1}
+    dr.eval(*per_pixel.values())
+    measured = {name: _mean_and_error(v) for name, v in per_pixel.items()}
     return Pilots({name: min(t) for name, t in times.items() if t}, {n: v for n, (v, _) in measured.items()}, spp,
-                  film_factor=film_factor, image_variance_error={n: e for n, (_, e) in measured.items()})
+                  film_factor=film_factor, image_variance_error={n: e for n, (_, e) in measured.items()},
+                  pixel_variance=per_pixel)
 
 
 def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> Callable[[int, int], object]:
@@ -319,7 +367,7 @@ the quadrature, but do not replace it."""
 
 
 def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, variance: dict,
-              rest: float, errors: dict | None = None) -> None:
+              rest: float, errors: Callable[[dict], float] | None = None) -> None:
     """Set ``pilots.shared_variance`` and ``pilots.calibration`` from the pilots' film
     variances (``measured``, quadrature units) against the quadrature's (``model``).
 
@@ -332,9 +380,10 @@ def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, var
       others on the environment strategy) then fixes a factor on that strategy's
       variances: the pilot's measured variance, less ``S`` and the other
       materials' part, over the quadrature's part, within :data:`CALIBRATION_RANGE`.
-      Where ``errors`` (pilot -> standard error of ``measured``) says that part was measured
-      loosely (its error follows the pilots it was derived from: :class:`Measured`), the
-      factor is drawn towards 1 (:func:`weighed_calibration`).
+      Where ``errors`` (the standard error of a combination of the pilots' ``measured``,
+      pilot -> weight: :func:`paired_errors`, :func:`independent_errors`) says that part was
+      measured loosely (its error follows the pilots it was derived from: :class:`Measured`),
+      the factor is drawn towards 1 (:func:`weighed_calibration`).
     """
     environment = [name for name in (LEAN, Strategy.ENVIRONMENT.label) if name in measured]
     pilots.shared_variance, pilots.calibration = 0.0, {}
@@ -376,10 +425,9 @@ class Measured:
     def __mul__(self, k: float) -> "Measured":
         return Measured(self.value * k, {name: w * k for name, w in self.weights.items()})
 
-    def error(self, errors: dict) -> float:
-        """Standard error, the pilots' errors taken as independent (within a round the pilots
-        share their random numbers, so differences of them are closer than this says)."""
-        return float(np.sqrt(sum((w * errors.get(name, 0.0)) ** 2 for name, w in self.weights.items())))
+    def error(self, errors: Callable[[dict], float]) -> float:
+        """Standard error, from ``errors``: that of a combination of pilots (pilot -> weight)."""
+        return errors(self.weights)
 
 
 def shared_part(measured: dict, environment: list, model_env: float) -> tuple[Measured, Measured]:
