@@ -45,6 +45,21 @@ def test_every_pixel_centre_is_labelled_with_the_bsdf_it_sees():
     assert dict(labels)["gold"] == "RoughConductor"
 
 
+def test_a_cropped_films_pixels_are_labelled_as_the_same_pixels_of_the_whole_film():
+    """The sensor places a film position relative to the crop window (as Mitsuba's integrators
+    and the pilots do): the crop's labels are the whole film's in that window."""
+    whole = two_sphere_scene()
+    ids, _ = materials.material_map(whole, whole.sensors()[0])
+    cropped = mi.load_dict({
+        "type": "perspective", "fov": 40,
+        "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 8], target=[0, 0, 0], up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": 40, "height": 20, "crop_offset_x": 22, "crop_offset_y": 3,
+                 "crop_width": 12, "crop_height": 9}})
+    window, _ = materials.material_map(whole, cropped)
+    assert window.shape == (9, 12)
+    assert np.array_equal(window, ids[3:12, 22:34])
+
+
 def synthetic_passes(rng, scale: np.ndarray, passes: int = 400) -> np.ndarray:
     """K passes of a (H, W, 3) image of mean 1 whose per-pixel noise has standard deviation ``scale``."""
     return 1.0 + scale[None, :, :, None] * rng.standard_normal((passes,) + scale.shape + (3,))

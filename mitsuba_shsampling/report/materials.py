@@ -48,10 +48,10 @@ def material_map(scene: mi.Scene, sensor: mi.Sensor) -> tuple[np.ndarray, list[t
     """
     film = sensor.film()
     width, height = (int(v) for v in film.crop_size())
-    offset = np.array(film.crop_offset(), dtype=np.float64)
-    size = np.array(film.size(), dtype=np.float64)
     idx = np.arange(width * height)
-    pos = mi.Point2f(((idx % width) + 0.5 + offset[0]) / size[0], ((idx // width) + 0.5 + offset[1]) / size[1])
+    # Relative to the crop window, as Mitsuba's integrators place their samples (the sensor
+    # maps the window onto its part of the view).
+    pos = mi.Point2f(((idx % width) + 0.5) / width, ((idx // width) + 0.5) / height)
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
     si = scene.ray_intersect(ray)
     hit_ids = np.array(dr.reinterpret_array(mi.UInt32, si.shape), dtype=np.int64)
