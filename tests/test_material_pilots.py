@@ -100,6 +100,14 @@ def test_each_pilot_lane_reads_the_material_its_pixel_centre_sees():
     assert set(np.unique(ids)) == {ball, NO_MATERIAL}
     strided = lane_materials(scene, scene.sensors()[0], 96)
     assert strided.shape == (96,) and np.array_equal(strided, ids.reshape(-1)[(np.arange(96) * 4)])
+    # A cropped film's lanes are its window's pixels (positions relative to the crop, as the
+    # pilots place their samples).
+    cropped = mi.load_dict({
+        "type": "perspective", "fov": 30,
+        "to_world": mi.ScalarTransform4f().look_at(origin=[0, -4, 0], target=[0, 0, 0], up=[0, 0, 1]),
+        "film": {"type": "hdrfilm", "width": 24, "height": 16, "crop_offset_x": 5, "crop_offset_y": 4,
+                 "crop_width": 10, "crop_height": 6}})
+    assert np.array_equal(lane_materials(scene, cropped, 60).reshape(6, 10), ids[4:10, 5:15])
 
 
 # ------------------------------------------------------------ weighing
