@@ -235,17 +235,18 @@ def paired_errors(pixel_variance: dict, scale: float = 1.0) -> Callable[[dict], 
     Why paired: the pilots of a round share their random numbers, so a pixel that a rare
     path (a caustic, a texture edge, an antialiasing sample across a bright edge) makes
     noisy is noisy in every pilot. Their difference, the product's own part of its film,
-    is then measured far more closely than the pilots' errors taken as independent say: on
-    the material studio at 256 x 192, where two thirds of the film's variance is shared,
-    independent errors put the product's calibration at 0.37 +- 1.65 and left it to the
-    quadrature, and the plan that followed lost a quarter of the measured gain
-    (docs/MEASUREMENTS.md, "A calibration weighed by its error")."""
+    is then measured more closely than the pilots' errors taken as independent say: on the
+    material studio at 256 x 192, where two thirds of the film's variance is shared, the
+    product's calibration is 0.37 +- 1.0 paired, +- 1.65 taken as independent
+    (docs/MEASUREMENTS.md, "Each material's difference, measured by the pilots")."""
     def error(weights: dict) -> float:
         terms = [(w, pixel_variance[name]) for name, w in weights.items() if w != 0.0]
         if not terms:
             return 0.0
         return _mean_and_error(sum(w * v for w, v in terms))[1] / scale
     return error
+
+
 def _per_pixel_variance(images: list):
     """Per pixel (a lane), the unbiased variance across ``images``, channels averaged over the
     finite ones, 0 where none is (float64)."""
