@@ -13,7 +13,7 @@ from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.integrators.chooser import choose_strategies  # noqa: E402
 from mitsuba_shsampling.integrators.environment import ProductEnvironment  # noqa: E402
 from mitsuba_shsampling.integrators.material_pilots import (MATERIAL_PRIOR_SD, NO_MATERIAL,  # noqa: E402
-                                                            MaterialDifference, lane_materials,
+                                                            MaterialDifference, lane_materials, quadrature_row,
                                                             material_differences, refine,
                                                             weighed_difference)
 from mitsuba_shsampling.integrators.options import DirectOptions  # noqa: E402
@@ -29,11 +29,6 @@ E, EO, P, PO = Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY, Strategy.PRODUCT
 @pytest.fixture(scope="module", autouse=True)
 def registered():
     register()
-
-
-def row_of(variance: dict) -> tuple:
-    """A quadrature row as :class:`MaterialDifference` keeps it."""
-    return tuple(sorted((s.label, float(v)) for s, v in variance.items()))
 
 
 def pilots_of(pixels: dict, film_factor: float = 1.0) -> Pilots:
@@ -64,7 +59,7 @@ def test_a_materials_difference_is_the_pilots_per_pixel_difference_summed_over_i
         assert m.difference == pytest.approx(d.sum() / (4000 * 0.5), rel=1e-12)
         assert m.error == pytest.approx(np.std(d, ddof=1) * np.sqrt(mine.sum()) / (4000 * 0.5), rel=1e-9)
         assert m.environment == pytest.approx(env[mine].sum() / (4000 * 0.5), rel=1e-12)
-        assert m.quadrature == row_of(quadrature[key])
+        assert m.quadrature == quadrature_row(quadrature[key])
     assert measured[7][P].difference > 10 * measured[7][P].error
     assert abs(measured[9][P].difference) < 4 * measured[9][P].error
 
@@ -113,7 +108,7 @@ def test_each_pilot_lane_reads_the_material_its_pixel_centre_sees():
 # ------------------------------------------------------------ weighing
 
 def measurement(difference, error, environment, quadrature):
-    return MaterialDifference(difference, error, environment, row_of(quadrature))
+    return MaterialDifference(difference, error, environment, quadrature_row(quadrature))
 
 
 def test_a_closely_measured_difference_replaces_the_quadratures():

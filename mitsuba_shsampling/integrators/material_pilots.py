@@ -35,7 +35,7 @@ MATERIAL_PRIOR_SD = 0.06
 """How far a material's (calibrated) quadrature difference between two strategies is
 believed off, where the quadrature saw what matters on the material: this share of its
 environment variance. With :data:`MISSED_SHARE`, the prior's maximum-likelihood fit to the
-410 material differences that the pilots measured in the 65 plans of the realistic scenes
+395 material differences that the pilots measured in the 65 plans of the realistic scenes
 (``sh_direct``, ``sh_path``) and the sphere table (docs/MEASUREMENTS.md, "Each material's
 difference, measured by the pilots"): where the pilots measured closely (error under 5 % of
 the environment variance), the quadrature was off by 2 % of it at the median, 8 % at the
@@ -72,6 +72,12 @@ class MaterialDifference:
     quadrature: tuple
     """The material's quadrature row (strategy label, variance) it was measured against: a
     later plan with other figures for it (its BSDF changed) does not use the measurement."""
+
+
+def quadrature_row(variances: dict) -> tuple:
+    """A material's quadrature figures (strategy -> variance) as :class:`MaterialDifference`
+    keeps them."""
+    return tuple(sorted((s.label, float(v)) for s, v in variances.items()))
 
 
 def lane_materials(scene: mi.Scene, sensor: mi.Sensor, lanes: int) -> np.ndarray:
@@ -123,9 +129,9 @@ def material_differences(pilots: Pilots, materials: np.ndarray, candidates: dict
             if candidate.assignment.get(key) != strategy or n < 2 or key not in quadrature:
                 continue
             spread = max(squares[i] - sums[i] * sums[i] / n, 0.0) / (n - 1)
-            row = tuple(sorted((s.label, float(v)) for s, v in quadrature[key].items()))
             out.setdefault(key, {})[strategy] = MaterialDifference(
-                float(sums[i] * scale), float(np.sqrt(n * spread) * scale), float(env_sums[i] * scale), row)
+                float(sums[i] * scale), float(np.sqrt(n * spread) * scale), float(env_sums[i] * scale),
+                quadrature_row(quadrature[key]))
     return out
 
 
@@ -146,7 +152,7 @@ def refine(variance: dict, shared: float, measured: dict, quadrature: dict) -> t
     for key, by_strategy in measured.items():
         if key not in out or key not in quadrature:
             continue
-        row = tuple(sorted((s.label, float(v)) for s, v in quadrature[key].items()))
+        row = quadrature_row(quadrature[key])
         base = out[key][Strategy.ENVIRONMENT]
         refined = {}
         for strategy, m in by_strategy.items():
