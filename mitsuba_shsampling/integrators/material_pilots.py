@@ -37,9 +37,9 @@ believed off, where the quadrature saw what matters on the material: this share 
 environment variance. With :data:`MISSED_SHARE`, the prior's maximum-likelihood fit to the
 395 material differences that the pilots measured in the 65 plans of the realistic scenes
 (``sh_direct``, ``sh_path``) and the sphere table (docs/MEASUREMENTS.md, "Each material's
-difference, measured by the pilots"): where the pilots measured closely (error under 5 % of
-the environment variance), the quadrature was off by 2 % of it at the median, 8 % at the
-90th percentile."""
+difference, measured by the pilots"; ``scripts/bench_material_pilots.py``): where the pilots
+measured closely (error under 5 % of the environment variance), the quadrature was off by
+2.3 % of it at the median, 9.5 % at the 90th percentile."""
 
 MISSED_SHARE = 0.03
 """The prior probability that the quadrature missed what matters on a material (a highlight
