@@ -55,8 +55,8 @@ import numpy as np
 from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
 from .pilots import (FILM_PILOT_PIXELS, LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
-                     camera_sample_pass, cosine_pilot, film_variance_factor, frozen_pilots, independent_errors,
-                     measure_pass_costs, paired_errors)
+                     camera_sample_pass, cosine_pilot, film_variance_factor, frozen_pilots, measure_pass_costs,
+                     paired_errors)
 from .material_pilots import lane_materials, material_differences, refine
 from .quadrature import PRODUCT_ONLY_SHARED, camera_frames, frame_variances
 from . import plan_file
@@ -452,10 +452,8 @@ def calibrated(p: Predictions, pilots: Pilots, candidates: dict):
     model = {name: p.rest + sum(p.variance[k][c.assignment[k]] for k in p.materials)
              for name, c in candidates.items()}
     measured = {name: v / pilots.film_factor for name, v in pilots.image_variance.items() if name in model}
-    if pilots.pixel_variance:
-        errors = paired_errors(pilots.pixel_variance, pilots.film_factor)
-    else:  # pilots made without their pixels (tests): each film's own error
-        errors = independent_errors({name: e / pilots.film_factor for name, e in pilots.image_variance_error.items()})
+    # Pilots without images (given pass times alone) have no error to weigh by.
+    errors = paired_errors(pilots.pixel_variance, pilots.film_factor) if pilots.pixel_variance else None
     if pilots.shared_variance is None:
         calibrate(pilots, measured, model, candidates, p.variance, p.rest, errors)
         pilots.shared_variance = rounded(pilots.shared_variance)
