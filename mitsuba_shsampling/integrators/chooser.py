@@ -56,9 +56,10 @@ from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
 from .pilots import (FILM_PILOT_PIXELS, LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
                      camera_sample_pass, cosine_pilot, film_variance_factor, frozen_pilots, measure_pass_costs,
-                     paired_errors)
+                     paired_errors, pilot_pixels)
 from .material_pilots import lane_materials, material_differences, refine
-from .quadrature import PRODUCT_ONLY_SHARED, camera_frames, frame_variances
+from .pilot_frames import PILOT_FRAMES, PILOT_FRAMES_SEED, PixelDensity
+from .quadrature import PRODUCT_ONLY_SHARED, camera_frames_at, frame_variances, grid_positions
 from . import plan_file
 from .strategy import ESTIMATE, MEASURE, Strategy, strategy_named
 
@@ -337,6 +338,10 @@ class Predictions:
     """The variance of the smooth materials outside the table (environment strategy)."""
     smooth_share: float = 1.0
     """Share of the film's camera samples that hit a smooth BSDF (they sample emitters)."""
+    rows: "FrameRows | None" = None
+    """The shading points the figures were summed from."""
+    bsdf_shared: set = dataclasses.field(default_factory=set)
+    """The materials whose ``product_only`` gives the BSDF its share."""
 
     def best_environment_strategies(self, variance: dict) -> dict:
         """Each material's least-variance strategy among Mitsuba's own (the lean kernel's;
@@ -346,13 +351,34 @@ class Predictions:
                 or self.allowed[k][0] for k in self.materials}
 
 
+@dataclasses.dataclass
+class FrameRows:
+    """The quadrature's shading points, from which a :class:`Predictions`' figures are summed."""
+
+    variances: np.ndarray
+    """(points, columns): :func:`~.quadrature.frame_variances` of each point (each cosine
+    lobe's by the sampling its material was given)."""
+    keys: np.ndarray
+    """Registry id of each point's BSDF."""
+    x: np.ndarray
+    y: np.ndarray
+    """Each point's film position."""
+    grid_positions: int
+    """The grid's film positions, those that hit no smooth BSDF included."""
+    grid_rows: int
+    """How many of the points (the first ones) are the grid's; the rest were drawn where the
+    pilots' pixels are noisiest (:func:`with_pilot_frames`)."""
+
+
 def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predictions:
     """Quadrature at the camera's first hits (:mod:`.quadrature`), per material of
-    ``env``'s strategy table; ``forced``: registry id -> the strategy the user set."""
-    si, bsdf, total = camera_frames(env.scene, sensor)
+    ``env``'s strategy table; ``forced``: registry id -> the strategy the user set. Decides
+    which cosine lobes sample from their tables and which materials' ``product_only`` gives
+    the BSDF its share (``env`` is set so)."""
+    x, y = grid_positions(sensor)
+    si, bsdf, kept = camera_frames_at(env.scene, sensor, x, y)
     variances = frame_variances(env, si, bsdf, n_e, n_b)
-    keys = np.broadcast_to(dr.reinterpret_array(mi.UInt32, bsdf).numpy(), (dr.width(si),)) \
-        if dr.width(si) else np.zeros(0, dtype=np.uint32)
+    keys = frame_keys(si, bsdf)
     cosine_frames = np.flatnonzero(np.isin(keys, list(env.lobes.cosine_ids))) if env.cosine_tables else []
     if len(cosine_frames):
         # The cosine lobes' SH walks at their own frames (as they were in the call over all):
@@ -366,26 +392,78 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
         finally:
             env.lobes.sample_from_tables(tabled)
         variances = choose_cosine_sampling(env, variances, walked, keys)
+    rows = FrameRows(variances, keys, x[kept], y[kept], len(x), len(keys))
+    p = summed_predictions(env, rows, np.full(len(keys), 1.0 / len(x)), forced, None)
+    env.share_bsdf(p.bsdf_shared)
+    return p
+
+
+def frame_keys(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr) -> np.ndarray:
+    """The registry id of each shading point's BSDF."""
+    if not dr.width(si):
+        return np.zeros(0, dtype=np.uint32)
+    return np.broadcast_to(dr.reinterpret_array(mi.UInt32, bsdf).numpy(), (dr.width(si),))
+
+
+def summed_predictions(env, rows: FrameRows, weights: np.ndarray, forced: dict,
+                       bsdf_shared: set | None) -> Predictions:
+    """Each material's figures: its points' variances, each times its ``weights`` (a film mean:
+    1 / grid positions on the grid alone), summed. ``bsdf_shared``: the materials whose
+    ``product_only`` gives the BSDF its share; None decides it (where that is predicted to
+    lower the variance)."""
     materials = list(env.strategies.ids)
     allowed = {key: [forced[key]] if key in forced else env.allowed(key) for key in materials}
     variance, share, shared = {}, {}, set()
     for key in materials:
-        rows = variances[keys == key]
-        share[key] = len(rows) / total
+        mine = rows.keys == key
+        values, w = rows.variances[mine], weights[mine]
+        share[key] = float(np.count_nonzero(mine[:rows.grid_rows])) / rows.grid_positions
         strategies = set(allowed[key]) | set(env.allowed(key))
-        variance[key] = {s: (float(np.sum(rows[:, s])) / total if len(rows) else 0.0) for s in strategies}
+        variance[key] = {s: float(np.sum(values[:, s] * w)) for s in strategies}
         # product_only gives the BSDF its share where that is predicted to lower the variance
         # (a lobe proxy that misses part of the BSDF), not where the product alone is close to
         # exact: the share's floor, b / (1 - b) of the squared mean, then dominates.
-        with_share = float(np.sum(rows[:, PRODUCT_ONLY_SHARED])) / total if len(rows) else 0.0
-        if Strategy.PRODUCT_ONLY in strategies and env.bsdf_share > 0 and with_share < variance[key][
-                Strategy.PRODUCT_ONLY]:
+        with_share = float(np.sum(values[:, PRODUCT_ONLY_SHARED] * w))
+        if Strategy.PRODUCT_ONLY in strategies and env.bsdf_share > 0 and (
+                with_share < variance[key][Strategy.PRODUCT_ONLY] if bsdf_shared is None else key in bsdf_shared):
             variance[key][Strategy.PRODUCT_ONLY] = with_share
             shared.add(key)
-    env.share_bsdf(shared)
-    rest_rows = variances[~np.isin(keys, materials)]
-    rest = float(np.sum(rest_rows[:, Strategy.ENVIRONMENT])) / total if len(rest_rows) else 0.0
-    return Predictions(materials, allowed, variance, share, rest, dr.width(si) / total if total else 0.0)
+    rest_rows = ~np.isin(rows.keys, materials)
+    rest = float(np.sum(rows.variances[rest_rows, Strategy.ENVIRONMENT] * weights[rest_rows]))
+    smooth = rows.grid_rows / rows.grid_positions if rows.grid_positions else 0.0
+    return Predictions(materials, allowed, variance, share, rest, smooth, rows=rows, bsdf_shared=shared)
+
+
+def with_pilot_frames(env, sensor: mi.Sensor, p: Predictions, pilots: Pilots, n_e: int, n_b: int,
+                      forced: dict) -> Predictions:
+    """``p`` summed again with :data:`~.pilot_frames.PILOT_FRAMES` more shading points, drawn
+    where the pilots' pixels are noisiest (:mod:`.pilot_frames`), every point weighed by the
+    balance heuristic over the grid's density and theirs. ``p`` where the pilots kept no
+    per-pixel variances. The grid's decisions (cosine tables, the BSDF's share) stand: the
+    pilots ran with them."""
+    density = pilot_density(sensor, pilots)
+    if density is None or p.rows is None:
+        return p
+    x, y = density.positions(PILOT_FRAMES)
+    si, bsdf, kept = camera_frames_at(env.scene, sensor, x, y)
+    extra = frame_variances(env, si, bsdf, n_e, n_b, seed=PILOT_FRAMES_SEED)
+    grid = p.rows
+    rows = FrameRows(np.concatenate([grid.variances, extra]), np.concatenate([grid.keys, frame_keys(si, bsdf)]),
+                     np.concatenate([grid.x, x[kept]]), np.concatenate([grid.y, y[kept]]), grid.grid_positions,
+                     grid.grid_rows)
+    weights = density.frame_weights(rows.x, rows.y, grid.grid_positions, len(x))
+    return summed_predictions(env, rows, weights, forced, p.bsdf_shared)
+
+
+def pilot_density(sensor: mi.Sensor, pilots: Pilots) -> PixelDensity | None:
+    """The pilots' per-pixel variance, summed over the pilots, as a density over the film
+    (None where they kept none)."""
+    if not pilots.pixel_variance:
+        return None
+    total = sum(np.asarray(v.numpy(), dtype=np.float64) for v in pilots.pixel_variance.values())
+    size = sensor.film().crop_size()
+    lanes = pilot_pixels(sensor, len(total)).numpy()
+    return PixelDensity.from_lanes(int(size[0]), int(size[1]), np.asarray(lanes, dtype=np.int64), total)
 
 
 def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool) -> dict:
@@ -544,6 +622,8 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
         fresh = pilots is None  # (pilots of an earlier choice: the scene's parameters changed)
         if fresh:
             pilots = run_pilots(env, sensor, candidates, render_pass, timed, film_factor)
+        p = with_pilot_frames(env, sensor, p, pilots, n_e, n_b, forced)
+        if fresh:
             pilots.by_material = measured_by_material(env, sensor, pilots, candidates, p)
         variance, rest, shared, fit = calibrated(p, pilots, candidates)
         if timed:

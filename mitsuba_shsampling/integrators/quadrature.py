@@ -38,17 +38,23 @@ share (``bsdf_defensive_share``; the plan gives it where it predicts less varian
 :func:`~.chooser.predict`)."""
 
 
-def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
-    """The camera's first hits at a stratified grid of film positions (at most
-    ``count``, at most one per pixel): ``(si, bsdf, total)`` with only the hits on
-    smooth BSDFs kept, and ``total`` the number of film positions traced."""
+def grid_positions(sensor: mi.Sensor, count: int = FRAMES) -> tuple[np.ndarray, np.ndarray]:
+    """A stratified grid of film positions (``x``, ``y`` in [0, 1]^2 over the crop window), at
+    most ``count`` and at most one per pixel, in raster order."""
     size = sensor.film().crop_size()
     width, height = int(size[0]), int(size[1])
     aspect = width / height
     nx = max(1, min(width, int(round(math.sqrt(count * aspect)))))
     ny = max(1, min(height, int(round(count / nx))))
     ix, iy = np.meshgrid((np.arange(nx) + 0.5) / nx, (np.arange(ny) + 0.5) / ny)
-    position = mi.Point2f(device_array(mi.Float, ix), device_array(mi.Float, iy))
+    return ix.ravel(), iy.ravel()
+
+
+def camera_frames_at(scene: mi.Scene, sensor: mi.Sensor, x: np.ndarray, y: np.ndarray):
+    """The camera's first hits at film positions ``(x, y)``: ``(si, bsdf, kept)`` with only
+    the hits on smooth BSDFs kept, ``kept`` the indices of their positions."""
+    position = mi.Point2f(device_array(mi.Float, np.asarray(x, dtype=np.float32)),
+                          device_array(mi.Float, np.asarray(y, dtype=np.float32)))
     ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
     si = scene.ray_intersect(ray)
     bsdf = si.bsdf(ray)
@@ -57,8 +63,18 @@ def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
     # each field alone, each in a kernel of its own that traces the rays again (some 30
     # kernels, 1.6 s of a cold plan's compiling on the material studio).
     dr.eval(si, bsdf, smooth)
-    keep = device_array(mi.UInt32, np.flatnonzero(np.broadcast_to(smooth.numpy(), (nx * ny,))))
-    return dr.gather(mi.SurfaceInteraction3f, si, keep), dr.gather(mi.BSDFPtr, bsdf, keep), nx * ny
+    kept = np.flatnonzero(np.broadcast_to(smooth.numpy(), (len(x),)))
+    index = device_array(mi.UInt32, kept)
+    return dr.gather(mi.SurfaceInteraction3f, si, index), dr.gather(mi.BSDFPtr, bsdf, index), kept
+
+
+def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
+    """The camera's first hits at a stratified grid of film positions (:func:`grid_positions`):
+    ``(si, bsdf, total)`` with only the hits on smooth BSDFs kept, and ``total`` the number of
+    film positions traced."""
+    x, y = grid_positions(sensor, count)
+    si, bsdf, _ = camera_frames_at(scene, sensor, x, y)
+    return si, bsdf, len(x)
 
 
 def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int, n_b: int,
@@ -88,7 +104,7 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     if frames is None:
         frames = np.arange(dr.width(si))
     if len(frames) == 0:
-        return np.zeros((0, len(Strategy)))
+        return np.zeros((0, len(Strategy) + 1))
     samples = mixture_samples(env, si, bsdf, directions, seed, device_array(mi.UInt32, frames.astype(np.uint32)))
     return strategy_variances(samples, n_e, n_b, env.warp is not None, env.warp_plain is not None)
 
@@ -110,7 +126,8 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
     bsdf = dr.gather(mi.BSDFPtr, bsdf, frame)
     # PCG32 adds arange(lanes) to both its state and its stream: offset each lane to its own place.
     offset = mi.UInt64(lane) - mi.UInt64(index)
-    rng = mi.PCG32(lanes, mi.UInt64(seed) + offset, mi.UInt64(PCG32_DEFAULT_STREAM) + offset)
+    # The seed is opaque: a literal would make each seed's kernel a kernel of its own to compile.
+    rng = mi.PCG32(lanes, dr.opaque(mi.UInt64, seed) + offset, mi.UInt64(PCG32_DEFAULT_STREAM) + offset)
     u0, u = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
 
     ctx = mi.BSDFContext()
