@@ -10,6 +10,9 @@ variance (quadrature and pilot) are kept. Then the two-part prior (``MATERIAL_PR
 ``MISSED_SHARE``) is fitted by maximum likelihood on a grid, beside the best single normal prior.
 
     python scripts/bench_material_pilots.py --json docs/bench_material_pilots.json
+
+``--plans FILE`` also writes each cell's plan; ``--against FILE`` (another commit's ``--plans``) lists
+the plans that changed, for an A/B of each (``scripts/ab_interleaved.py``).
 """
 
 from __future__ import annotations
@@ -37,8 +40,9 @@ def cells(quick: bool = False) -> list:
     return out[:2] if quick else out
 
 
-def measurements(cell) -> list:
-    """The plan of one cell and its per-material measurements, as dicts."""
+def measurements(cell, plans: dict | None = None) -> list:
+    """The plan of one cell and its per-material measurements, as dicts; the plan itself
+    goes into ``plans`` (cell name -> :func:`plan_summary`) where given."""
     import mitsuba as mi
 
     from mitsuba_shsampling.scenes import builtin_scenes, load_scene
@@ -46,10 +50,12 @@ def measurements(cell) -> list:
     scene_name, envmap, res, integrator = cell
     scene = load_scene(builtin_scenes()[scene_name], envmap=envmap, res=res, spp=16)
     choice = mi.load_dict(integrator).plan(scene)
+    name = f"{scene_name}|{os.path.basename(envmap) if envmap else 'sunsky'}|{integrator['type']}"
+    if plans is not None:
+        plans[name] = plan_summary(choice.as_dict())
     if choice.pilots is None:
         return []
     factor = {s.label: f for s, f in choice.pilots.calibration.items()}
-    name = f"{scene_name}|{os.path.basename(envmap) if envmap else 'sunsky'}|{integrator['type']}"
     rows = []
     for key, by_strategy in choice.pilots.by_material.items():
         for strategy, m in by_strategy.items():
@@ -60,6 +66,23 @@ def measurements(cell) -> list:
                          "measured": m.difference, "error": m.error, "environment": env,
                          "environment_pilot": m.environment})
     return rows
+
+
+def plan_summary(plan: dict) -> dict:
+    """What a plan runs: each material's strategy, or "lean" for every material where the
+    lean kernel runs (Mitsuba's strategies without the product's code)."""
+    return {m["name"]: "lean" if plan.get("lean") else m["strategy"] for m in plan["materials"]}
+
+
+def changed_plans(before: dict, after: dict) -> dict:
+    """Cell -> material -> (strategy before, after), for the cells of both whose plans differ."""
+    out = {}
+    for cell in sorted(set(before) & set(after)):
+        a, b = before[cell], after[cell]
+        moved = {m: (a.get(m), b.get(m)) for m in sorted(set(a) | set(b)) if a.get(m) != b.get(m)}
+        if moved:
+            out[cell] = moved
+    return out
 
 
 def log_likelihood(rows: list, close: float, missed_share: float) -> float:
@@ -98,15 +121,26 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--json", default=None)
     parser.add_argument("--quick", action="store_true", help="two cells only (a smoke run)")
+    parser.add_argument("--plans", default=None, help="write each cell's plan (material -> strategy) to this JSON")
+    parser.add_argument("--against", default=None, help="a --plans JSON of another commit: list the plans that changed")
     args = parser.parse_args(argv)
     from mitsuba_shsampling.benchmarks import set_default_variant
 
     set_default_variant()
     import mitsuba_shsampling  # noqa: F401  (registers the plugins)
 
-    rows = []
+    rows, plans = [], {}
     for cell in cells(args.quick):
-        rows += measurements(cell)
+        rows += measurements(cell, plans)
+    if args.plans:
+        with open(args.plans, "w") as f:
+            json.dump(plans, f, indent=1, sort_keys=True)
+    if args.against:
+        with open(args.against) as f:
+            changed = changed_plans(json.load(f), plans)
+        print(f"plans changed against {args.against}: {len(changed)} of {len(plans)}")
+        for cell, moved in changed.items():
+            print(f"  {cell}: " + ", ".join(f"{m} {a} -> {b}" for m, (a, b) in moved.items()))
     result = fit(rows)
     print(f"{result['measurements']} measured differences; two-part prior: close {result['close']:.3f} of the "
           f"environment variance, missed share {result['missed_share']:.3f} (log-likelihood "

@@ -45,3 +45,17 @@ def test_every_readme_cell_is_planned(bench):
     cells = bench.cells()
     assert len(cells) == 2 * 5 * 2 + 9 * 5
     assert {c[3]["type"] for c in cells} == {"sh_direct", "sh_path"}
+
+
+def test_the_plans_that_changed_are_listed_material_by_material(bench):
+    before = {"studio|sunsky|sh_direct": {"gold": "environment", "ground": "environment"},
+              "studio|sunsky|sh_path": {"gold": "lean", "ground": "lean"},
+              "sphere|forest|sh_direct": {"ball": "product"}}
+    after = {"studio|sunsky|sh_direct": {"gold": "product", "ground": "environment"},
+             "studio|sunsky|sh_path": {"gold": "product", "ground": "environment"},
+             "sphere|forest|sh_direct": {"ball": "product"}}
+    assert bench.changed_plans(before, after) == {
+        "studio|sunsky|sh_direct": {"gold": ("environment", "product")},
+        "studio|sunsky|sh_path": {"gold": ("lean", "product"), "ground": ("lean", "environment")}}
+    assert bench.plan_summary({"lean": True, "materials": [{"name": "gold", "strategy": "environment"}]}) == \
+        {"gold": "lean"}
