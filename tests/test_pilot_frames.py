@@ -76,6 +76,9 @@ def test_fewer_lanes_than_pixels_spread_each_lanes_mass_over_its_run_of_pixels()
     density = PixelDensity.from_lanes(WIDTH, HEIGHT, lane_pixels, weights)
     ratio = density.ratio(np.arange(pixels))
     assert ratio.mean() == pytest.approx(1.0, rel=1e-12)
+    # Each pixel's density follows its lane's per-pixel variance, however long the lane's run.
+    lane_of_pixel = np.searchsorted(lane_pixels, np.arange(pixels), side="right") - 1
+    assert ratio == pytest.approx(weights[lane_of_pixel] * pixels / np.sum(weights[lane_of_pixel]), rel=1e-9)
     x, y = density.positions(4000)
     assert np.all((x >= 0) & (x < 1) & (y >= 0) & (y < 1))
     drawn = density.pixels_at(x, y)

@@ -70,10 +70,13 @@ class PixelDensity:
             counts = np.bincount(lane_pixels, minlength=pixels)
             weights = np.bincount(lane_pixels, weights=weights, minlength=pixels) / np.maximum(counts, 1)
             lane_pixels = np.arange(pixels)
-        total = weights.sum()
+        start = np.append(lane_pixels, pixels)
+        # A lane's weight is a per-pixel variance: its run holds that much at each of its pixels.
+        mass = weights * np.diff(start)
+        total = mass.sum()
         if not (total > 0 and np.isfinite(total)):
             return None
-        return cls(width, height, np.append(lane_pixels, pixels), weights / total)
+        return cls(width, height, start, mass / total)
 
     def ratio(self, pixels: np.ndarray) -> np.ndarray:
         """The density at film pixels ``pixels`` over the uniform density's."""
