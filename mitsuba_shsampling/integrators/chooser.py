@@ -460,7 +460,7 @@ def pilot_density(sensor: mi.Sensor, pilots: Pilots) -> PixelDensity | None:
     (None where they kept none)."""
     if not pilots.pixel_variance:
         return None
-    total = sum(np.asarray(v.numpy(), dtype=np.float64) for v in pilots.pixel_variance.values())
+    total = np.asarray(sum(pilots.pixel_variance.values()).numpy(), dtype=np.float64)  # summed on the device
     size = sensor.film().crop_size()
     lanes = pilot_pixels(sensor, len(total)).numpy()
     return PixelDensity.from_lanes(int(size[0]), int(size[1]), np.asarray(lanes, dtype=np.int64), total)
