@@ -14,7 +14,7 @@ frame, the grid's and these, is weighed by the balance heuristic over the two de
 estimated without bias whatever the pilots measured (the grid keeps its say where they
 measured little), and with far fewer frame-sampling misses where the variance is
 concentrated. On the material studio at 256 x 192 under its sun-and-sky map the grid put the
-gold GGX 0.05 ball's environment-strategy variance at 5.7e-4, a tenth of what its pilot
+gold GGX 0.05 ball's environment-strategy variance at 6e-4, under a tenth of what its pilot
 pixels hold (docs/MEASUREMENTS.md, "Quadrature frames where the pilots are noisy").
 
 Conventions: film positions are in [0, 1]^2 over the film's crop window, as
