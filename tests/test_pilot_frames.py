@@ -102,58 +102,100 @@ def test_the_frames_are_the_same_in_every_call():
 
 # ------------------------------------------------------------ in the plan
 
-def test_the_plan_finds_a_suns_highlight_on_a_small_ball_that_its_grid_misses():
-    """A GGX 0.05 ball, 1.4 % of the film, under a half-degree sun: nearly all of its
-    variance is in the one or two pixels of the sun's reflection, which the quadrature's
-    grid does not visit. Pilots that saw those pixels bring the ball's figures, for the
-    environment strategy and the product alike, to a dense quadrature's (16 points a pixel)."""
-    import drjit as dr
+BALL_FILM = 64
+
+
+@pytest.fixture(scope="module")
+def small_ball():
+    """A GGX 0.05 ball, 1.4 % of a 64 x 64 film, on a diffuse floor under a half-degree sun:
+    nearly all of the ball's variance is in the one or two pixels of the sun's reflection."""
     import mitsuba as mi
 
     mi.set_variant("llvm_ad_rgb")
-    from mitsuba_shsampling.device_arrays import device_array
     from mitsuba_shsampling.integrators import register
-    from mitsuba_shsampling.integrators.chooser import predict, with_pilot_frames
-    from mitsuba_shsampling.integrators.environment import ProductEnvironment
-    from mitsuba_shsampling.integrators.options import DirectOptions
-    from mitsuba_shsampling.integrators.pilots import Pilots
-    from mitsuba_shsampling.integrators.quadrature import camera_frames_at, frame_variances
-    from mitsuba_shsampling.integrators.strategy import Strategy
     from test_strategy_choice import SUN
 
     register()
-    size = 64
-    scene = mi.load_dict({
+    return mi.load_dict({
         "type": "scene", "env": SUN,
         "sensor": {"type": "perspective", "fov": 30,
                    "to_world": mi.ScalarTransform4f().look_at(origin=[0, -3, 3], target=[0, 0, 0], up=[0, 0, 1]),
-                   "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
+                   "film": {"type": "hdrfilm", "width": BALL_FILM, "height": BALL_FILM, "rfilter": {"type": "box"}},
                    "sampler": {"type": "independent"}},
         "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": {"type": "diffuse"}},
         "ball": {"type": "sphere", "center": [0, 0, 0.15], "radius": 0.15,
                  "bsdf": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05}}})
-    env = ProductEnvironment(scene, DirectOptions(), carry_all=True)
-    sensor = scene.sensors()[0]
+
+
+def ball_variances(scene, env, ball, points_per_side: int) -> np.ndarray:
+    """Per film pixel, the ball's variance per strategy (0 elsewhere), from a quadrature at
+    ``points_per_side``^2 points of every pixel."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mitsuba_shsampling.integrators.quadrature import camera_frames_at, frame_variances
+
+    k = (np.arange(points_per_side) + 0.5) / points_per_side
+    pixel = np.arange(BALL_FILM * BALL_FILM)
+    x = ((pixel % BALL_FILM)[:, None, None] + k[None, :, None] + 0 * k[None, None, :]) / BALL_FILM
+    y = ((pixel // BALL_FILM)[:, None, None] + 0 * k[None, :, None] + k[None, None, :]) / BALL_FILM
+    si, bsdf, kept = camera_frames_at(scene, scene.sensors()[0], x.ravel(), y.ravel())
+    rows = frame_variances(env, si, bsdf, 1, 1, seed=9)
+    rows[np.asarray(dr.reinterpret_array(mi.UInt32, bsdf).numpy()) != ball] = 0.0
+    per_point = np.zeros((x.size, rows.shape[1]))
+    per_point[kept] = np.nan_to_num(rows)
+    return per_point.reshape(BALL_FILM * BALL_FILM, -1, rows.shape[1]).mean(axis=1)
+
+
+def pilots_that_saw_the_highlight(scene, env, ball):
+    import mitsuba as mi
+
+    from mitsuba_shsampling.device_arrays import device_array
+    from mitsuba_shsampling.integrators.pilots import Pilots
+
+    return Pilots({}, pixel_variance={"environment": device_array(mi.Float64, ball_variances(scene, env, ball, 1)[:, 0])})
+
+
+def test_the_plan_finds_a_suns_highlight_on_a_small_ball_that_its_grid_misses(small_ball):
+    """The quadrature's grid does not visit the ball's highlight. Pilots that saw those pixels
+    bring the ball's figures, for the environment strategy and the product alike, to a dense
+    quadrature's (16 points a pixel)."""
+    from mitsuba_shsampling.integrators.chooser import predict, with_pilot_frames
+    from mitsuba_shsampling.integrators.environment import ProductEnvironment
+    from mitsuba_shsampling.integrators.options import DirectOptions
+    from mitsuba_shsampling.integrators.strategy import Strategy
+
+    env = ProductEnvironment(small_ball, DirectOptions(), carry_all=True)
+    sensor = small_ball.sensors()[0]
     grid = predict(env, sensor, 1, 1, {})
     ball = min(grid.materials, key=grid.share.get)
-
-    def ball_variances(points_per_side: int) -> np.ndarray:
-        """The ball's film mean per strategy, from a quadrature at every pixel (``points_per_side``^2 points)."""
-        k = (np.arange(points_per_side) + 0.5) / points_per_side
-        pixel = np.arange(size * size)
-        x = ((pixel % size)[:, None, None] + k[None, :, None] + 0 * k[None, None, :]) / size
-        y = ((pixel // size)[:, None, None] + 0 * k[None, :, None] + k[None, None, :]) / size
-        si, bsdf, kept = camera_frames_at(scene, sensor, x.ravel(), y.ravel())
-        rows = frame_variances(env, si, bsdf, 1, 1, seed=9)
-        rows[np.asarray(dr.reinterpret_array(mi.UInt32, bsdf).numpy()) != ball] = 0.0
-        per_point = np.zeros((x.size, rows.shape[1]))
-        per_point[kept] = np.nan_to_num(rows)
-        return per_point.reshape(size * size, -1, rows.shape[1]).mean(axis=1)
-
-    dense = ball_variances(4).mean(axis=0)
-    seen = Pilots({}, pixel_variance={"environment": device_array(mi.Float64, ball_variances(1)[:, 0])})
-    refined = with_pilot_frames(env, sensor, grid, seen, 1, 1, {})
+    dense = ball_variances(small_ball, env, ball, 4).mean(axis=0)
+    refined = with_pilot_frames(env, sensor, grid, pilots_that_saw_the_highlight(small_ball, env, ball), 1, 1, {})
     for strategy in (Strategy.ENVIRONMENT, Strategy.PRODUCT):
         assert grid.variance[ball][strategy] < 0.7 * dense[strategy]
         assert refined.variance[ball][strategy] == pytest.approx(dense[strategy], rel=0.25)
     assert refined.share == grid.share
+
+
+def test_the_chooser_weighs_its_materials_with_the_frames_its_pilots_point_to(small_ball):
+    """The plan reports (and chooses by) the figures summed with the pilots' frames, not the
+    grid's, whenever its pilots kept per-pixel variances."""
+    from mitsuba_shsampling.integrators.chooser import choose_strategies, predict, with_pilot_frames
+    from mitsuba_shsampling.integrators.environment import ProductEnvironment
+    from mitsuba_shsampling.integrators.options import DirectOptions
+    from mitsuba_shsampling.integrators.strategy import Strategy
+    from test_strategy_choice import PASS_TIME
+
+    sensor = small_ball.sensors()[0]
+    env = ProductEnvironment(small_ball, DirectOptions(), carry_all=True)
+    grid = predict(env, sensor, 1, 1, {})
+    ball = min(grid.materials, key=grid.share.get)
+    pilots = pilots_that_saw_the_highlight(small_ball, env, ball)
+    refined = with_pilot_frames(env, sensor, grid, pilots, 1, 1, {})
+    pilots.pass_time = dict(PASS_TIME)  # pass times as timed pilots give them (``plan`` ``measure``)
+    env = ProductEnvironment(small_ball, DirectOptions(), carry_all=True)
+    choice = choose_strategies(env, sensor, 1, 1, render_pass=None, pilots=pilots)
+    (reported,) = [m for m in choice.materials if m.share == grid.share[ball]]
+    assert reported.variance[Strategy.ENVIRONMENT] == pytest.approx(refined.variance[ball][Strategy.ENVIRONMENT],
+                                                                    rel=1e-9)
+    assert reported.variance[Strategy.ENVIRONMENT] > 1.5 * grid.variance[ball][Strategy.ENVIRONMENT]
