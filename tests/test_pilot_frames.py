@@ -199,3 +199,25 @@ def test_the_chooser_weighs_its_materials_with_the_frames_its_pilots_point_to(sm
     assert reported.variance[Strategy.ENVIRONMENT] == pytest.approx(refined.variance[ball][Strategy.ENVIRONMENT],
                                                                     rel=1e-9)
     assert reported.variance[Strategy.ENVIRONMENT] > 1.5 * grid.variance[ball][Strategy.ENVIRONMENT]
+
+
+def test_pilots_that_differ_in_their_last_bits_give_the_same_figures(small_ball):
+    """Film passes splat with atomics, so two processes' pilots differ in their last bits; the
+    figures summed with their frames must not (the same scene gives the same plan and figures)."""
+    import mitsuba as mi
+
+    from mitsuba_shsampling.device_arrays import device_array
+    from mitsuba_shsampling.integrators.chooser import predict, with_pilot_frames
+    from mitsuba_shsampling.integrators.environment import ProductEnvironment
+    from mitsuba_shsampling.integrators.options import DirectOptions
+    from mitsuba_shsampling.integrators.pilots import Pilots
+
+    env = ProductEnvironment(small_ball, DirectOptions(), carry_all=True)
+    sensor = small_ball.sensors()[0]
+    grid = predict(env, sensor, 1, 1, {})
+    ball = min(grid.materials, key=grid.share.get)
+    seen = ball_variances(small_ball, env, ball, 1)[:, 0] + 1e-3
+    jitter = 1.0 + 1e-12 * np.random.default_rng(3).standard_normal(len(seen))
+    figures = [with_pilot_frames(env, sensor, grid, Pilots({}, pixel_variance={"environment": device_array(
+        mi.Float64, values)}), 1, 1, {}) for values in (seen, seen * jitter)]
+    assert figures[0].variance == figures[1].variance and figures[0].rest == figures[1].rest

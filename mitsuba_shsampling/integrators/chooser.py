@@ -88,6 +88,13 @@ SIGNIFICANT_DIGITS = 3
 to this many digits: the film's atomic splats leave differences of ~1e-7 between
 processes, and a plan must not follow them."""
 
+FRAME_FIGURE_DIGITS = 6
+"""The figures summed with the pilots' frames (:func:`with_pilot_frames`) are rounded to this
+many digits: every frame's weight carries the pilots' per-pixel variances through the
+density's normalisation, and with them the last bits of the films' atomic splats (figures
+that differed by up to 2e-11 between processes). Six digits keep what the quadrature says
+and drop that."""
+
 
 @dataclasses.dataclass
 class MaterialChoice:
@@ -440,7 +447,7 @@ def with_pilot_frames(env, sensor: mi.Sensor, p: Predictions, pilots: Pilots, n_
     where the pilots' pixels are noisiest (:mod:`.pilot_frames`), every point weighed by the
     balance heuristic over the grid's density and theirs. ``p`` where the pilots kept no
     per-pixel variances. The grid's decisions (cosine tables, the BSDF's share) stand: the
-    pilots ran with them."""
+    pilots ran with them. Figures to :data:`FRAME_FIGURE_DIGITS` digits."""
     density = pilot_density(sensor, pilots)
     if density is None or p.rows is None:
         return p
@@ -452,7 +459,9 @@ def with_pilot_frames(env, sensor: mi.Sensor, p: Predictions, pilots: Pilots, n_
                      np.concatenate([grid.x, x[kept]]), np.concatenate([grid.y, y[kept]]), grid.grid_positions,
                      grid.grid_rows)
     weights = density.frame_weights(rows.x, rows.y, grid.grid_positions, len(x))
-    return summed_predictions(env, rows, weights, forced, p.bsdf_shared)
+    summed = summed_predictions(env, rows, weights, forced, p.bsdf_shared)
+    return dataclasses.replace(summed, rest=rounded(summed.rest, FRAME_FIGURE_DIGITS), variance={
+        k: {s: rounded(v, FRAME_FIGURE_DIGITS) for s, v in row.items()} for k, row in summed.variance.items()})
 
 
 def pilot_density(sensor: mi.Sensor, pilots: Pilots) -> PixelDensity | None:
