@@ -68,9 +68,9 @@ _DIGEST_NAME = re.compile(r"^[0-9a-f]{16}$")
 Record = dict
 
 _memory: "OrderedDict[str, Record]" = OrderedDict()
-#: Builds run in threads (the pyramids beside the lobe fits): the table is shared.
+#: A user may build from threads of their own (the writer below is one more): the table is shared.
 _memory_lock = threading.Lock()
-#: Open :func:`kept_in_process` blocks (any thread's: the builds they start run in threads too).
+#: Open :func:`kept_in_process` blocks (any thread's).
 _in_process_only = 0
 #: Writes to the disk cache run in one thread of their own, off the set-up's path (a pyramid's
 #: ``.npz`` is 10-40 MB, 20-50 ms to write); the interpreter waits for them at exit.

@@ -516,8 +516,9 @@ def test_coarse_leaf_excess_matches_a_float64_numpy_reference_at_every_level():
 
 
 def test_the_compensated_and_plain_pyramids_of_a_map_share_its_finest_level_and_keep_nothing():
-    """The integrators build both pyramids of a map at once: the second takes the first's
-    finest level while the first holds it; once neither does, it is freed."""
+    """The integrators build both pyramids of a map, one after the other, inside
+    ``finest_level_kept``: the second takes the first's finest level. Outside it, a level is
+    shared only while something holds it, and once nothing does, it is freed."""
     luminance = random_latlong(8, 16, seed=6) @ np.array([0.212671, 0.715160, 0.072169])
     luminance = luminance.astype(np.float32)
     first = pyramid_module._target_at_finest_level(luminance, 1.0, 6)
@@ -525,6 +526,13 @@ def test_the_compensated_and_plain_pyramids_of_a_map_share_its_finest_level_and_
     assert pyramid_module._target_at_finest_level(luminance, 2.0, 6) is not first  # another scale
     alive = weakref.ref(first)
     del first
+    gc.collect()
+    assert alive() is None
+
+    with pyramid_module.finest_level_kept():
+        alive = weakref.ref(pyramid_module._target_at_finest_level(luminance, 1.0, 6))
+        gc.collect()
+        assert alive() is not None and pyramid_module._target_at_finest_level(luminance, 1.0, 6) is alive()
     gc.collect()
     assert alive() is None
 

@@ -170,6 +170,32 @@ def test_five_fresh_processes_make_one_plan_and_the_same_image(tmp_path):
         assert np.sqrt(np.mean((image - images[0]) ** 2)) / np.sqrt(np.mean(images[0] ** 2)) < 1e-4
 
 
+UNDER_INFO_LOG = """
+import sys
+import drjit as dr, mitsuba as mi
+mi.set_variant("llvm_ad_rgb")
+sys.path.insert(0, {tests!r})
+from test_integrators import MATERIALS, make_scene
+from mitsuba_shsampling.integrators import register
+register()
+scene = make_scene(materials={{k: MATERIALS[k] for k in {names!r}}})
+dr.set_log_level(dr.LogLevel.Info)
+mi.load_dict({{"type": "sh_direct", "max_bands": 5}}).plan(scene)
+print("planned")
+"""
+
+
+def test_a_plan_under_dr_jits_info_log_level_finishes():
+    """Dr.Jit's log callback takes the GIL while Dr.Jit's lock is held: set-up work on Dr.Jit
+    from two Python threads (the pyramids were once built beside the lobe fits) deadlocked
+    here in every try."""
+    code = UNDER_INFO_LOG.format(tests=os.path.join(REPO, "tests"), names=PLANNED)
+    env = dict(os.environ, SHSAMPLING_CACHE_DIR="off", PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "planned"
+
+
 def test_the_plan_and_the_render_read_no_memory_whose_alignment_varies_from_run_to_run():
     """An array that Dr.Jit maps from numpy at an address not a multiple of 64 is read with
     'align 1' loads; numpy's addresses differ per process, so such a kernel was new to the

@@ -25,6 +25,7 @@ features (a sun of one texel) can therefore not be missed at any depth.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
 import threading
@@ -864,21 +865,37 @@ class _FinestLevel:
 
 
 _finest_lock = threading.Lock()
-_finest_last: dict = {"key": None, "level": lambda: None}
+_finest_last: dict = {"key": None, "level": lambda: None, "held": None, "keeping": 0}
+
+
+@contextlib.contextmanager
+def finest_level_kept():
+    """Within this block, the pyramids built of one map share its finest level
+    (:func:`_target_at_finest_level`): the integrators build the compensated pyramid and then
+    the plain one. On leaving it, the level is let go."""
+    with _finest_lock:
+        _finest_last["keeping"] += 1
+    try:
+        yield
+    finally:
+        with _finest_lock:
+            _finest_last["keeping"] -= 1
+            if not _finest_last["keeping"]:
+                _finest_last["held"] = None
 
 
 def _target_at_finest_level(luminance: np.ndarray, scale: float, depth: int) -> _FinestLevel:
-    """The map's level D, computed once for the compensated and the plain pyramid.
-
-    The integrators build both pyramids of a map at the same time, in two threads
-    (``ProductEnvironment``): the second takes the first's level while the first still holds
-    it (a weak reference: nothing stays alive after the builds), else computes its own."""
+    """The map's level D, computed once for the compensated and the plain pyramid: a build
+    takes the level of the build before it while something still holds that level (a weak
+    reference), or inside :func:`finest_level_kept`; else it computes its own."""
     key = content_key(luminance, scale, depth)
     with _finest_lock:
         level = _finest_last["level"]() if _finest_last["key"] == key else None
         if level is None:
             level = _FinestLevel(luminance, scale, depth)
             _finest_last.update(key=key, level=weakref.ref(level))
+        if _finest_last["keeping"]:
+            _finest_last["held"] = level
         return level
 
 
@@ -899,11 +916,14 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
         # A constant map would become black: keep it uncompensated then. (Its cells differ
         # from their mean by rounding alone: what compensation leaves of such a map is noise,
         # under COMPENSATION_RESIDUE of its integral.)
-        sharpened = mi.Float(dr.maximum(finest - radiant_total / (1 << (2 * depth)), 0.0))
+        # The map's mean as opaque values: as literals they made these kernels new to Dr.Jit's
+        # kernel cache for every map.
+        mean_cell = dr.opaque(mi.Float64, radiant_total / (1 << (2 * depth)))
+        sharpened = mi.Float(dr.maximum(finest - mean_cell, 0.0))
         dr.eval(sharpened)
         if float(dr.sum(mi.Float64(sharpened)).numpy()[0]) > COMPENSATION_RESIDUE * radiant_total:
             finest, compensated = mi.Float64(sharpened), True
-            corners = dr.maximum(corners - np.float32(radiant_total / (4 * np.pi)), 0.0)
+            corners = dr.maximum(corners - dr.opaque(mi.Float, np.float32(radiant_total / (4 * np.pi))), 0.0)
 
     levels, blocks = sum_levels(finest, depth)
     built_depth = depth

@@ -25,7 +25,6 @@ import gc
 import math
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, NamedTuple
 
 import drjit as dr
@@ -35,7 +34,7 @@ import numpy as np
 from ..build_cache import kept_in_process
 from ..envmap.emitter import EmitterDirections, compensated_copy
 from ..envmap.evaluated import EVALUATED_EMITTERS, is_evaluated, sky_components
-from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid
+from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid, finest_level_kept
 from ..lobes import SceneLobes
 from ..scene_materials import registry_id, scene_materials
 from ..traversal import readable_parameters
@@ -293,13 +292,13 @@ class ProductEnvironment(EnvironmentState):
 
     def _fit_lobes_and_build_pyramids(self, scene, options: ProductOptions, wants_plain: bool):
         """Set ``lobes`` and ``pyramid`` (or ``reason`` where every BSDF is delta); returns
-        the uncompensated pyramid where ``wants_plain``.
+        the uncompensated pyramid where ``wants_plain`` and a product lobe needs it.
 
-        The pyramids are numpy work that does not depend on the lobes: built in threads
-        while the lobes are fitted (on two cores about a second less set-up on a 1k map).
-        The uncompensated one is started where the product may carry every sample; it is
-        dropped if no material turns out to have a product lobe."""
-        any_smooth = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Smooth) for m in self._materials.values())
+        One after the other, on this thread. The pyramids were once built in threads beside
+        the lobe fits, when they were numpy work; now both are Dr.Jit kernels that use every
+        core, the threads saved nothing (a new scene's state 0.50-0.55 s with them, 0.46-0.53 s
+        without, docs/MEASUREMENTS.md), and Dr.Jit work from two Python threads deadlocked
+        under Dr.Jit's ``Info`` log level."""
         if is_evaluated(self.emitter):
             # Evaluated on the host first: the sun's sun_scale is set to 0 while the sky is.
             # Its sampling is never compensated (Mitsuba's sampling of it has no such option,
@@ -309,15 +308,14 @@ class ProductEnvironment(EnvironmentState):
             build = lambda compensated: EnvPyramid.from_latlong(self.sky.image)  # noqa: E731
         else:
             build = lambda compensated: EnvPyramid(self.emitter, mis_compensation=compensated)  # noqa: E731
-        with ThreadPoolExecutor(max_workers=2) as pool:
-            pyramid = pool.submit(build, options.mis_compensation) if any_smooth else None
-            plain_pyramid = pool.submit(build, False) if any_smooth and wants_plain else None
-            self.lobes = SceneLobes(scene, max_bands=options.max_bands)
-            if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
-                self.reason = "every BSDF in the scene is delta: no shading point samples the environment"
-                return None
-            self.pyramid = pyramid.result() if pyramid is not None else build(options.mis_compensation)
-            return plain_pyramid.result() if plain_pyramid is not None else None
+        self.lobes = SceneLobes(scene, max_bands=options.max_bands)
+        if not (self.lobes.has_product_lobes or self.lobes.has_unsupported_lobes):
+            self.reason = "every BSDF in the scene is delta: no shading point samples the environment"
+            return None
+        with finest_level_kept():  # the plain pyramid reuses the compensated one's finest level
+            self.pyramid = build(options.mis_compensation)
+            needs_plain = wants_plain and self.lobes.has_product_lobes and self.pyramid.mis_compensation
+            return build(False) if needs_plain else None
 
     def _resolve_named(self, named: dict[str, Strategy]) -> dict[int, Strategy]:
         """Registry id -> strategy of the materials ``strategy`` names; an unknown name, or
