@@ -196,32 +196,15 @@ class SceneLobes:
             key = registry_id(bsdf)
             if key in row_of_id:
                 continue
-            support = lobe_support(bsdf)
-            wrapper = bsdf.class_name() in FRAME_WRAPPERS
-            # A wrapper's lobe is its nested BSDF's, about the perturbed normal.
-            params = self._fit_bsdf(nested_bsdf(bsdf) if wrapper else bsdf, uvs) if support == "product" else None
-            why = None
-            if support == "unsupported":
-                why = ("its nested BSDF is transmissive, itself a wrapper of the shading frame, or not found"
-                       if wrapper else "it is transmissive")
-            elif support == "product" and not self._fit_is_usable(params):
-                support = "unsupported"
-                # An emitter's own shape gets a black BSDF by default: nothing
-                # to warn about (its lanes still sample the environment alone).
-                why = None if shape.is_emitter() else "its fitted lobe has no energy at some view elevation"
+            support, params = self._classify_and_fit(shape, bsdf, uvs)
             if support == "unsupported":
                 self.has_unsupported_lobes = True
-            if why is not None:
-                warnings.warn(
-                    f"SceneLobes: BSDF '{bsdf.id()}' ({bsdf.class_name()}, flags "
-                    f"{int(bsdf.flags()):#x}): {why}; it has no product lobe, and its surfaces use "
-                    "Mitsuba's envmap sampling (the environment strategies).", stacklevel=2)
             if support != "product":
                 row_of_id[key] = 0
                 continue
             self.fits[bsdf.id()] = params
             self.bsdfs_with_lobes[key] = bsdf
-            if wrapper:
+            if bsdf.class_name() in FRAME_WRAPPERS:
                 self._perturbed[key] = (dr.opaque(mi.UInt32, key), PerturbedNormal(bsdf))
             row_of_id[key] = len(rows)
             rows.append(params)
@@ -249,6 +232,30 @@ class SceneLobes:
         # Opaque: the largest registry id changes with the order in which Mitsuba's parallel
         # loading creates the objects, and a literal would make the kernel new in such a process.
         self._row_of_id_size = dr.opaque(mi.UInt32, len(id_table))
+
+    def _classify_and_fit(self, shape: mi.Shape, bsdf: mi.BSDF, uvs: np.ndarray) -> tuple[str, np.ndarray | None]:
+        """``(support, params)`` of a shape's BSDF: :func:`lobe_support`, turned
+        ``"unsupported"`` where the fit is unusable, and the fitted parameters where it has a
+        product lobe; a warning says why a BSDF gets none (not for an emitter's own shape)."""
+        support = lobe_support(bsdf)
+        wrapper = bsdf.class_name() in FRAME_WRAPPERS
+        # A wrapper's lobe is its nested BSDF's, about the perturbed normal.
+        params = self._fit_bsdf(nested_bsdf(bsdf) if wrapper else bsdf, uvs) if support == "product" else None
+        why = None
+        if support == "unsupported":
+            why = ("its nested BSDF is transmissive, itself a wrapper of the shading frame, or not found"
+                   if wrapper else "it is transmissive")
+        elif support == "product" and not self._fit_is_usable(params):
+            support = "unsupported"
+            # An emitter's own shape gets a black BSDF by default: nothing
+            # to warn about (its lanes still sample the environment alone).
+            why = None if shape.is_emitter() else "its fitted lobe has no energy at some view elevation"
+        if why is not None:
+            warnings.warn(
+                f"SceneLobes: BSDF '{bsdf.id()}' ({bsdf.class_name()}, flags "
+                f"{int(bsdf.flags()):#x}): {why}; it has no product lobe, and its surfaces use "
+                "Mitsuba's envmap sampling (the environment strategies).", stacklevel=3)
+        return support, params
 
     def sample_from_tables(self, keys) -> None:
         """The cosine lobes (registry ids among :attr:`cosine_ids`) whose lanes are marked
