@@ -38,7 +38,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..build_cache import cached_build, content_key
-from ..device_arrays import device_array
+from ..device_arrays import aligned_empty, device_array
 from ..grid import TWO_PI, Cell
 
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
@@ -145,7 +145,8 @@ def _theta_integrals(lum: np.ndarray, n: int) -> np.ndarray:
     # Sweep the rows once, keeping the prefix integral C[y] of every column,
     # and read it off at the edge rows. (A row loop over full-width vectors:
     # np.cumsum along axis 0 of a row-major array is ~8x slower.)
-    g = np.empty((n + 1, width))
+    # In aligned memory, read-only once written: the kernels map it without a copy (device_array).
+    g = aligned_empty((n + 1, width), np.float64)
     order = np.argsort(y_edge, kind="stable")
     first_edge = np.searchsorted(y_edge[order], np.arange(height), side="left")
     last_edge = np.searchsorted(y_edge[order], np.arange(height), side="right")
@@ -157,37 +158,8 @@ def _theta_integrals(lum: np.ndarray, n: int) -> np.ndarray:
         prefix += full_a[y] * row + full_b[y] * next_row
     # Cell iz spans theta from theta_{iz+1} up to theta_iz.
     np.subtract(g[:-1], g[1:], out=g[:-1])
+    g.flags.writeable = False
     return g[:-1]
-
-
-def _corner_radiance(lum: np.ndarray, n: int) -> np.ndarray:
-    """The map's luminance at the corners of the finest cells, (n + 1, n + 1) float32,
-    rows iz (z = -1 + 2 iz / n), columns iphi (phi = 2 pi iphi / n).
-
-    The same interpolant as the integrals: linear in theta between rows (row y at
-    theta = y pi / (H - 1), the +Y pole first), linear in u between columns (column x
-    at u = (x + 0.5) / W, periodic), with u = 1 - phi / (2 pi) in the grid frame.
-    """
-    height, width = lum.shape
-    theta = np.arccos(np.clip(-1.0 + 2.0 * np.arange(n + 1) / n, -1.0, 1.0))
-    row = np.clip(theta * (height - 1) / np.pi, 0.0, height - 1)
-    r0 = np.minimum(row.astype(np.int64), max(height - 2, 0))
-    fr = (row - r0)[:, None]
-    r1 = np.minimum(r0 + 1, height - 1)
-    column = ((1.0 - np.arange(n + 1) / n) * width - 0.5) % width
-    c0 = np.floor(column).astype(np.int64) % width
-    fc = (column - np.floor(column))[None, :]
-    c1 = (c0 + 1) % width
-    # Separable: along theta first at the map's width, then along u at the grid's
-    # (two (n + 1)^2 gathers, not four).
-    lum = lum.astype(np.float32, copy=False)
-    rows = lum[r0] * (1 - fr).astype(np.float32) + lum[r1] * fr.astype(np.float32)
-    out = rows[:, c0]
-    out *= (1 - fc).astype(np.float32)
-    right = rows[:, c1]
-    right *= fc.astype(np.float32)
-    out += right
-    return out
 
 
 def _phi_integrals(bands: np.ndarray, n: int, scale: float = 1.0) -> mi.Float64:
@@ -934,6 +906,9 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
     # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
     # leaf records with the corners they need (see :func:`leaf_records`).
     buffer = mi.Float(blocks_buffer(levels, blocks, depth - 1)).numpy()
-    return {"buffer": buffer, "records": leaf_records(mi.Float(blocks[depth]), corners),
+    records = leaf_records(mi.Float(blocks[depth]), corners)
+    # Views of Dr.Jit's memory, never written to again: the pyramid maps them without a copy.
+    buffer.flags.writeable = records.flags.writeable = False
+    return {"buffer": buffer, "records": records,
             "depth": depth, "trimmed_levels": built_depth - depth, "total": float(levels[0].numpy()[0]),
             "radiant_total": radiant_total, "compensated": compensated}
