@@ -27,9 +27,14 @@ paid back at a given equal-time efficiency E (``--efficiency``): a method with
 set-up T and E times the other's efficiency gives the lower error from
 t = T E / (E - 1) of wall time on.
 
+With ``--renders-first N`` each child first renders the scene N times with Mitsuba's
+``direct`` and N times with its ``path`` (untimed), as ``compare`` and the sweep's cells do
+before the plugin's set-up: there the set-up runs in a process whose memory other renders
+have shaped (docs/MEASUREMENTS.md, "A pyramid's arrays mapped, not copied").
+
     python3 scripts/bench_setup.py [--scene material_studio] [--envmap FILE] [--res 480]
                                    [--spp 16] [--methods direct sh_direct] [--map-change FILE]
-                                   [--json OUT.json]
+                                   [--renders-first N] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ STATES = {"cold": (False, False), "new map": (True, False), "warm": (True, True)
 
 
 def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: str,
-              map_change: str | None = None) -> dict:
+              map_change: str | None = None, renders_first: int = 0) -> dict:
     """In this process: load the scene, plan (timed), render once (timed whole), then
     :data:`NEXT_PASSES` more; then a second object, a BSDF change, and with ``map_change``
     the envmap's texels replaced by that file's."""
@@ -67,6 +72,10 @@ def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: s
 
     path = builtin_scenes().get(scene_name, scene_name)
     scene = load_scene(path, envmap=envmap, res=res, spp=spp)
+    for other in ("direct", "path"):
+        for seed in range(renders_first):
+            dr.eval(mi.render(scene, integrator=mi.load_dict({"type": other}), spp=spp, seed=1000 + seed))
+    dr.sync_thread()
 
     def one_pass(integrator, seed: int) -> float:
         start = time.perf_counter()
@@ -130,6 +139,8 @@ def measure(args, method: str, kernels: str, builds: str) -> dict:
         command += ["--envmap", args.envmap]
     if args.map_change:
         command += ["--map-change", args.map_change]
+    if args.renders_first:
+        command += ["--renders-first", str(args.renders_first)]
     environment = {**os.environ, "DRJIT_CACHE_DIR": kernels, "SHSAMPLING_CACHE_DIR": builds}
     done = subprocess.run(command, env=environment, capture_output=True, text=True, check=False)
     if done.returncode != 0:
@@ -156,11 +167,14 @@ def main(argv=None) -> None:
                         help="cache states to measure, in this order (default: all)")
     parser.add_argument("--map-change", default=None,
                         help="also time a change of the scene's map to this file's texels (same resolution)")
+    parser.add_argument("--renders-first", type=int, default=0,
+                        help="in each child, render the scene this many times with direct and with path first")
     parser.add_argument("--json", default=os.path.join("docs", "bench_setup.json"))
     parser.add_argument(CHILD_FLAG, action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
-        print(json.dumps(run_child(args.scene, args.envmap, args.res, args.spp, args.methods[0], args.map_change)))
+        print(json.dumps(run_child(args.scene, args.envmap, args.res, args.spp, args.methods[0], args.map_change,
+                                   args.renders_first)))
         return
 
     rows = []
@@ -180,7 +194,8 @@ def main(argv=None) -> None:
                 rows.append(record)
     direct_pass = next((r["pass_s"] for r in rows if r["method"] == "direct"), None)
     print(f"{args.scene} at {args.res} px wide, {args.spp} spp a pass"
-          + (f", envmap {os.path.basename(args.envmap)}" if args.envmap else ""))
+          + (f", envmap {os.path.basename(args.envmap)}" if args.envmap else "")
+          + (f", after {args.renders_first} renders each of direct and path" if args.renders_first else ""))
     print(f"{'method':<12}{'cache':<9}{'first call s':>13}{'pass s':>9}{'set-up s':>10}{'in direct passes':>18}"
           f"{'state s':>9}{'plan s':>8}{'compile s':>11}{'2nd object s':>14}{'BSDF change s':>15}{'payback s':>11}"
           + (f"{'map change s':>14}" if args.map_change else ""))
@@ -201,7 +216,7 @@ def main(argv=None) -> None:
           "equal-time efficiency has paid for its extra set-up")
     from mitsuba_shsampling.benchmarks import write_json
     write_json(args.json, {"scene": args.scene, "envmap": args.envmap, "map_change": args.map_change,
-                           "res": args.res, "spp": args.spp,
+                           "res": args.res, "spp": args.spp, "renders_first": args.renders_first,
                            "efficiency": args.efficiency, "runs": rows})
 
 

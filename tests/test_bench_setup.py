@@ -43,10 +43,12 @@ def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_plan_apar
     mi.Bitmap(other).write(str(tmp_path / "other.exr"))
     proc = subprocess.run([sys.executable, SCRIPT, "--scene", "sphere_ggx010", "--res", "16", "--spp", "1",
                            "--states", "cold", "warm", "--map-change", str(tmp_path / "other.exr"),
-                           "--json", str(out)],
+                           "--renders-first", "1", "--json", str(out)],
                           env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
-    runs = json.loads(out.read_text())["runs"]
+    written = json.loads(out.read_text())
+    runs = written["runs"]
+    assert written["renders_first"] == 1 and "after 1 renders each of direct and path" in proc.stdout
     assert [(r["method"], r["cache"]) for r in runs] == [
         ("direct", "cold"), ("direct", "warm"), ("sh_direct", "cold"), ("sh_direct", "warm")]
     for r in runs:
