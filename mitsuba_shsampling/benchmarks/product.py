@@ -39,6 +39,7 @@ import dataclasses
 import os
 import statistics
 import time
+from typing import Callable
 
 import drjit as dr
 import mitsuba as mi
@@ -118,6 +119,41 @@ def load_maps(files: list[str] | None) -> list[tuple[str, mi.Emitter]]:
              mi.load_dict({"type": "envmap", "filename": os.path.abspath(f)})) for f in paths]
 
 
+def time_warp(warp, coeffs, factored: Callable, fresh_u, mitsuba_run, repeats: int) -> tuple:
+    """``(compile_s, (mitsuba_s, sample_s, lobe_s, pdf_s), (sample_ops, lobe_ops, mitsuba_ops))``:
+    the first sample call's wall time, then the median kernel times of Mitsuba's envmap sampling,
+    the warp's sample from coefficients in memory (``coeffs``), from the lobe built in the kernel
+    (``factored()``, traced into each run) and its pdf, and the operation counts of the three sampling kernels."""
+    def sample_run():
+        d, pdf = warp.sample(coeffs, fresh_u())
+        dr.eval(d, pdf)
+        dr.sync_thread()
+
+    def sample_lobe_run():
+        # As the integrators run it: the lobe built in the kernel from its axis (12 B a
+        # lane read) in factored form (RotatedZonalLobes), not n^2 floats read from memory.
+        d, pdf = warp.sample(factored(), fresh_u())
+        dr.eval(d, pdf)
+        dr.sync_thread()
+
+    def pdf_run():
+        d = mi.warp.square_to_uniform_sphere(fresh_u())
+        dr.eval(d)
+        dr.eval(warp.pdf(coeffs, d))
+        dr.sync_thread()
+
+    # Every run compiled once (that call's wall time reported), then timed interleaved
+    # by kernel time: load on a shared machine drifts, and the ratio is what the
+    # target is about.
+    compile_s = first_call_seconds(sample_run)
+    for warm in (mitsuba_run, sample_lobe_run, pdf_run):
+        warm()
+    times = interleaved_kernel_seconds(
+        {"mitsuba": mitsuba_run, "sample": sample_run, "lobe": sample_lobe_run, "pdf": pdf_run}, repeats)
+    medians = tuple(statistics.median(times[k]) for k in ("mitsuba", "sample", "lobe", "pdf"))
+    return compile_s, medians, (kernel_ops(sample_run), kernel_ops(sample_lobe_run), kernel_ops(mitsuba_run))
+
+
 def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
     pyramid = EnvPyramid(emitter, level_tolerance=settings.level_tolerance)
     # Fidelity needs the pdf of every leaf: 4^12 = 17M at the default depth of
@@ -152,37 +188,8 @@ def bench_map(name: str, emitter: mi.Emitter, settings: Settings) -> list[dict]:
                           for axis in FIDELITY_AXES[:settings.fidelity_lobes]]
         for sh_depth in (settings.sh_depths or [None]):
             warp = settings.warp(pyramid, sh_depth)
-
-            def sample_run():
-                d, pdf = warp.sample(coeffs, fresh_u())
-                dr.eval(d, pdf)
-                dr.sync_thread()
-
-            def sample_lobe_run():
-                # As the integrators run it: the lobe built in the kernel from its axis (12 B a
-                # lane read) in factored form (RotatedZonalLobes), not n^2 floats read from memory.
-                d, pdf = warp.sample(phong_lobes_factored(n_bands, axes, s), fresh_u())
-                dr.eval(d, pdf)
-                dr.sync_thread()
-
-            def pdf_run():
-                d = mi.warp.square_to_uniform_sphere(fresh_u())
-                dr.eval(d)
-                dr.eval(warp.pdf(coeffs, d))
-                dr.sync_thread()
-
-            # Every run compiled once (that call's wall time reported), then timed interleaved
-            # by kernel time: load on a shared machine drifts, and the ratio is what the
-            # target is about.
-            compile_s = first_call_seconds(sample_run)
-            for warm in (mitsuba_run, sample_lobe_run, pdf_run):
-                warm()
-            times = interleaved_kernel_seconds(
-                {"mitsuba": mitsuba_run, "sample": sample_run, "lobe": sample_lobe_run, "pdf": pdf_run},
-                settings.repeats)
-            mitsuba_s, sample_s, lobe_s, pdf_s = (statistics.median(times[k])
-                                                  for k in ("mitsuba", "sample", "lobe", "pdf"))
-            sample_ops, lobe_ops, mitsuba_ops = kernel_ops(sample_run), kernel_ops(sample_lobe_run), kernel_ops(mitsuba_run)
+            compile_s, (mitsuba_s, sample_s, lobe_s, pdf_s), (sample_ops, lobe_ops, mitsuba_ops) = time_warp(
+                warp, coeffs, lambda: phong_lobes_factored(n_bands, axes, s), fresh_u, mitsuba_run, settings.repeats)
             fidelity_warp = settings.warp(fidelity_pyramid, sh_depth)
             figures = [product_fidelity(fidelity_warp, lobe) for lobe in fidelity_lobes]
             mean = {key: float(np.mean([f[key] for f in figures])) for key in figures[0]}
