@@ -75,7 +75,11 @@ _in_process_only = 0
 #: Writes to the disk cache run in one thread of their own, off the set-up's path (a pyramid's
 #: ``.npz`` is 10-40 MB, 20-50 ms to write); the interpreter waits for them at exit.
 _writer: ThreadPoolExecutor | None = None
-_pending: list[Future] = []
+#: Writes handed to the writer, each with the record it writes. The record is held here, on the
+#: callers' side, until a caller sees its write done: its arrays may be views of Dr.Jit memory,
+#: and the writer must not drop their last reference (Dr.Jit work from a second thread deadlocks
+#: under Dr.Jit's ``Info`` log level; docs/MEASUREMENTS.md, "The per-scene state built on one thread").
+_pending: list[tuple[Future, Record | None]] = []
 #: The cache folder was pruned in this process (:func:`prune`, once, before the first write).
 _pruned = False
 
@@ -172,19 +176,39 @@ def _write_later(path: str, record: Record) -> None:
     with _memory_lock:
         if _writer is None:
             _writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="shsampling-build-cache")
-        _pending[:] = [f for f in _pending if not f.done()]
+        _pending[:] = [(f, r) for f, r in _pending if not f.done()]
         if not _pruned:
             _pruned = True
-            _pending.append(_writer.submit(prune, cache_folder()))
-        _pending.append(_writer.submit(_write, path, record))
+            _pending.append((_writer.submit(prune, cache_folder()), None))
+        handed = _Handed(record)
+        _pending.append((_writer.submit(_write_handed, path, handed), record))
+
+
+class _Handed:
+    """A record as the writer gets it: the writer lets go of it before its write counts as
+    done (:func:`_write_handed`), so that the callers' reference in ``_pending`` is the last."""
+
+    __slots__ = ("record",)
+
+    def __init__(self, record: Record):
+        self.record = record
+
+
+def _write_handed(path: str, handed: _Handed) -> None:
+    try:
+        _write(path, handed.record)
+    finally:
+        handed.record = None
 
 
 def flush() -> None:
     """Wait until every build handed to the disk cache so far is written."""
     with _memory_lock:
-        pending = list(_pending)
+        pending = [future for future, _ in _pending]
     for future in pending:
         future.result()
+    with _memory_lock:
+        _pending[:] = [(f, r) for f, r in _pending if not f.done()]
 
 
 def clear_in_process() -> None:

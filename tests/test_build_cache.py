@@ -4,6 +4,7 @@ least recently used files go once it holds more than its bound; a build read bac
 The report's reference renders beside them are bounded the same way."""
 
 import os
+import threading
 import time
 
 import numpy as np
@@ -70,3 +71,38 @@ def test_the_reports_references_are_bounded_too_each_npz_with_its_exr(tmp_path, 
     rendering.prune_references(str(tmp_path))
     left = sorted(p.name for p in tmp_path.iterdir() if p.is_file())
     assert left == ["notes.npz", "ref_scene_1.exr", "ref_scene_1.npz", "ref_scene_3.exr", "ref_scene_3.npz"]
+
+
+class Tracked(np.ndarray):
+    """An array that notes the thread that frees it (views of it note nothing)."""
+    freed_in: list = []
+
+    def __del__(self):
+        if getattr(self, "tracked", False):
+            Tracked.freed_in.append(threading.current_thread().name)
+
+
+def test_a_record_written_to_disk_is_let_go_on_the_callers_thread_not_the_writers(tmp_path, monkeypatch):
+    """A build's arrays may be views of Dr.Jit memory: their last reference must not go in the
+    writer thread (Dr.Jit work from a second thread deadlocks under Dr.Jit's Info log level)."""
+    monkeypatch.setenv(build_cache.ENVIRONMENT_VARIABLE, str(tmp_path))
+    build_cache.clear_in_process()
+    release = threading.Event()
+    write = build_cache._write
+    monkeypatch.setattr(build_cache, "_write", lambda path, record: (release.wait(10), write(path, record)))
+    values = np.arange(4.0).view(Tracked)
+    values.tracked = True
+    Tracked.freed_in.clear()
+    build_cache.cached_build("test", "tracked", lambda: {"values": values})
+    build_cache.clear_in_process()
+    del values  # the writer's copy of the record, and the callers', are all that hold it now
+    release.set()
+    written = os.path.join(build_cache.cache_folder(), "test", "tracked.npz")
+    deadline = time.time() + 10
+    while not os.path.exists(written) and time.time() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.2)  # the write has returned, and the writer's thread let go of its work item
+    assert Tracked.freed_in == []  # still held on the callers' side
+    build_cache.flush()
+    assert Tracked.freed_in == ["MainThread"]
+    assert os.path.exists(written)
