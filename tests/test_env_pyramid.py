@@ -537,6 +537,30 @@ def test_the_compensated_and_plain_pyramids_of_a_map_share_its_finest_level_and_
     assert alive() is None
 
 
+def test_a_new_map_of_the_same_resolution_builds_its_pyramid_with_the_kernels_compiled_for_the_last():
+    """Every figure of a map (its total, its mean for the compensation) reaches the kernels as an
+    opaque value: as a literal it made the level test's and the compensation's kernels new to
+    Dr.Jit's kernel cache for every map a user tries. 256 x 128 texels: depth 10, so the finest
+    level is tested (``trimmed_depth``)."""
+    image = random_latlong(128, 256, seed=11)
+    image[40:44, 100:104] *= 400.0  # a small bright patch, so that the compensation subtracts something
+
+    def kernels(texels):
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            dr.kernel_history()
+            for compensated in (True, False):
+                EnvPyramid.from_latlong(texels, mis_compensation=compensated)
+            return {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+    first = kernels(image)
+    other = kernels(np.roll(image * 0.37, 64, axis=1))
+    assert len(first) > 5
+    assert other <= first
+
+
 @pytest.mark.parametrize("tolerance", [-1e-3, float("nan"), float("inf"), True, "0.1"])
 def test_a_bad_level_tolerance_is_a_value_error_before_the_emitter_is_touched(tolerance):
     with pytest.raises(ValueError, match="level_tolerance"):

@@ -335,11 +335,14 @@ def trimmed_depth(levels: list, corners: mi.Float, tolerance: float, floor_depth
     the target at level D's corners ((2^D + 1)^2, row-major, on the device)."""
     depth = len(levels) - 1
     total = float(levels[0].numpy()[0])
-    share = levels[depth] / total if total > 0 else None
+    # 1 / total as an opaque value: a literal of each map's total made these kernels new to
+    # Dr.Jit's kernel cache for every map.
+    inverse = dr.opaque(mi.Float64, 1.0 / total) if total > 0 else None
+    share = levels[depth] * inverse if total > 0 else None
     keep = depth
     for level in range(depth - 1, floor_depth - 1, -1):
         excess = 0.0 if share is None else _leaf_excess(
-            share, levels[level] / total, mi.Float64(corners_at_level(corners, depth, level)), 1 << depth, level)
+            share, levels[level] * inverse, mi.Float64(corners_at_level(corners, depth, level)), 1 << depth, level)
         if not excess < tolerance:
             break
         keep = level
