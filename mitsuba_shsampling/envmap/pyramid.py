@@ -894,10 +894,11 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
         # The map's mean as opaque values: as literals they made these kernels new to Dr.Jit's
         # kernel cache for every map.
         mean_cell = dr.opaque(mi.Float64, radiant_total / (1 << (2 * depth)))
-        sharpened = mi.Float(dr.maximum(finest - mean_cell, 0.0))
+        # Rounded to float32 as the cells are stored, held in float64 for the sums: one array.
+        sharpened = mi.Float64(mi.Float(dr.maximum(finest - mean_cell, 0.0)))
         dr.eval(sharpened)
-        if float(dr.sum(mi.Float64(sharpened)).numpy()[0]) > COMPENSATION_RESIDUE * radiant_total:
-            finest, compensated = mi.Float64(sharpened), True
+        if float(dr.sum(sharpened).numpy()[0]) > COMPENSATION_RESIDUE * radiant_total:
+            finest, compensated = sharpened, True
             corners = dr.maximum(corners - dr.opaque(mi.Float, np.float32(radiant_total / (4 * np.pi))), 0.0)
 
     levels, blocks = sum_levels(finest, depth)
