@@ -56,9 +56,10 @@ def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_plan_apar
         assert math.isclose(r["setup_s"], r["first_call_s"] - r["pass_s"])
         assert math.isclose(r["compile_s"], r["setup_s"] - r["plan_s"])
         assert "second_object_s" in r and "bsdf_change_s" in r and "map_change_s" in r
-    # A first call costs more than a pass where it compiles or plans; `direct` with its kernels
-    # cached has nothing to do first, and its two timings differ by noise alone.
-    assert all(r["first_call_s"] > r["pass_s"] for r in runs if r["method"] == "sh_direct" or r["cache"] == "cold")
+    # A first call costs more than a pass where it plans. `direct` is left out even cold: the renders
+    # made first compiled its kernels in the same process, so it has nothing to do first and its two
+    # timings differ by noise alone (comparing them failed CI once).
+    assert all(r["first_call_s"] > r["pass_s"] for r in runs if r["method"] == "sh_direct")
     sh = [r for r in runs if r["method"] == "sh_direct"]
     assert all(0 < r["state_s"] + r["choice_s"] <= r["plan_s"] < r["first_call_s"] for r in sh)
     assert all(r["pyramid_build_s"] > 0 for r in sh)
