@@ -57,8 +57,8 @@ def measure_model(kind: str, res: int):
     integrator = mi.load_dict({"type": PLUGINS[kind]})
     env = integrator.scenes.get(scene)
     p = predict(env, sensor, 1, 1, {})
-    # Every pilot, environment_only's too: the calibration prices every strategy.
-    candidates = pilot_candidates(env, p, {k: Strategy.ENVIRONMENT_ONLY for k in p.materials}, timed=True)
+    # Every pilot, those of the strategies that carry every sample too: the calibration prices every strategy.
+    candidates = pilot_candidates(env, p, {}, timed=True, alone=(Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY))
     film = sensor.film().crop_size()
     spp = max(1, -(-PILOT_LANES // (int(film[0]) * int(film[1]))))
 

@@ -90,8 +90,8 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
     random shading points of a sphere that falls where the environment strategy
     of the lane (the product's pdf, or the environment alone's where the BSDF has
     no product lobe) is 0. Returns (share, fraction of lanes with a product lobe).
-    With ``carrying_all`` (a strategy that carries every sample: "product_only" or
-    "environment_only"), the scene's pyramid is MIS-compensated, that strategy is
+    With ``carrying_all`` (a strategy that carries every sample: "product_only",
+    "environment_only" or "bsdf_only"), the scene's pyramid is MIS-compensated, that strategy is
     forced and only the lanes that run it (no BSDF sample) count: it must cover
     everything alone.
 
@@ -135,6 +135,8 @@ def uncovered_share(bsdf: dict, points: int = 4096, seed: int = 0,
             return dr.select(use_product, env.warp_plain.pdf(lobe.coeffs, d, lobe.proxy), 0.0)
         if carrying_all == "environment_only":
             return dr.select(hit, env.env_plain.pdf(d), 0.0)
+        if carrying_all == "bsdf_only":
+            return dr.select(hit, bsdf_ptr.pdf(ctx, si, si.to_local(d), hit), 0.0)
         return env.pdf(lobe, use_product, d, smooth)
 
     def integrand_and_pdfs(d):
@@ -177,7 +179,7 @@ def test_no_lit_direction_is_left_to_bsdf_sampling_alone(name):
         assert product_lanes > 0.5
 
 
-@pytest.mark.parametrize("strategy", ["product_only", "environment_only"])
+@pytest.mark.parametrize("strategy", ["product_only", "environment_only", "bsdf_only"])
 @pytest.mark.parametrize("name", ["diffuse", "ggx_0.05", "beckmann_0.3"])
 def test_lanes_without_a_bsdf_sample_are_covered_by_their_uncompensated_strategy(name, strategy):
     share, carrying = uncovered_share(BSDFS[name], carrying_all=strategy)
@@ -195,7 +197,7 @@ def strategies_of(bsdf: dict, carry_all: bool = True, **options) -> list[str]:
 
 
 def test_a_bsdf_with_a_dirac_part_always_keeps_its_bsdf_sample():
-    assert strategies_of(BSDFS["diffuse"]) == ["environment", "environment_only", "product", "product_only"]
+    assert strategies_of(BSDFS["diffuse"]) == ["environment", "environment_only", "bsdf_only", "product", "product_only"]
     blend = {"type": "blendbsdf", "weight": 0.5, "bsdf_0": {"type": "diffuse"}, "bsdf_1": {"type": "conductor"}}
     assert strategies_of(blend) == ["environment", "product"]
     assert strategies_of({"type": "plastic"}) == ["environment", "product"]
@@ -206,22 +208,22 @@ def test_only_integrators_that_may_skip_the_bsdf_sample_offer_strategies_without
 
 
 def test_bsdfs_without_a_product_lobe_choose_between_the_environment_strategies_only():
-    assert strategies_of(BSDFS["roughdielectric"]) == ["environment", "environment_only"]
+    assert strategies_of(BSDFS["roughdielectric"]) == ["environment", "environment_only", "bsdf_only"]
     bumped_glass = {"type": "bumpmap", "arbitrary": {"type": "bitmap", "bitmap": HEIGHT, "raw": True},
                     "bsdf": BSDFS["roughdielectric"]}
-    assert strategies_of(bumped_glass) == ["environment", "environment_only"]
+    assert strategies_of(bumped_glass) == ["environment", "environment_only", "bsdf_only"]
     bumped_normal_map = {"type": "bumpmap", "arbitrary": {"type": "bitmap", "bitmap": HEIGHT, "raw": True},
                          "bsdf": BSDFS["normalmap"]}
-    assert strategies_of(bumped_normal_map) == ["environment", "environment_only"]
+    assert strategies_of(bumped_normal_map) == ["environment", "environment_only", "bsdf_only"]
 
 
 @pytest.mark.parametrize("name", ["bumpmap", "normalmap"])
 def test_frame_perturbing_wrappers_are_product_sampled_with_their_nested_lobe(name):
-    assert strategies_of(BSDFS[name]) == ["environment", "environment_only", "product", "product_only"]
+    assert strategies_of(BSDFS[name]) == ["environment", "environment_only", "bsdf_only", "product", "product_only"]
 
 
 def test_anisotropic_lobes_are_product_sampled_with_an_isotropic_proxy():
-    assert strategies_of(BSDFS["anisotropic"]) == ["environment", "environment_only", "product", "product_only"]
+    assert strategies_of(BSDFS["anisotropic"]) == ["environment", "environment_only", "bsdf_only", "product", "product_only"]
 
 
 def test_forcing_the_environment_strategy_builds_no_product():
@@ -323,7 +325,7 @@ def test_brightest_pixel_over_ten_million_samples_is_no_firefly():
     assert brightest["sh_direct"] <= 3.0 * brightest["direct"], brightest
 
 
-@pytest.mark.parametrize("strategy", ["environment", "environment_only", "product", "product_only"])
+@pytest.mark.parametrize("strategy", ["environment", "environment_only", "bsdf_only", "product", "product_only"])
 def test_every_forced_strategy_is_unbiased_beside_an_area_light(strategy):
     """Materials that cannot run the forced strategy (a Dirac part, no lobe) fall back."""
     scene = make_scene(materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "blend", "smooth")},

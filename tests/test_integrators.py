@@ -143,6 +143,18 @@ def test_sh_direct_is_unbiased_with_a_sun_and_an_area_light_beside_the_environme
                     mi.load_dict({"type": "path", "max_depth": 2}))
 
 
+@pytest.mark.parametrize("selection", ["each", "one"])
+def test_bsdf_only_beside_the_product_strategies_is_unbiased_with_other_lights_and_uneven_sample_counts(selection):
+    # bsdf_only draws every slot of its lanes from the BSDF, product_only's BSDF share draws in
+    # the BSDF slots of its own lanes: both in one kernel, with a 1D sample more per slot.
+    scene = make_scene(rotated=True, area_light=True, sun_light=True,
+                       materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "roughplastic", "principled")})
+    sh_direct = mi.load_dict({"type": "sh_direct", "max_bands": BANDS, "emitter_samples": 2, "bsdf_samples": 3,
+                              "emitter_selection": selection,
+                              "strategy": "bsdf_only,ggx=product_only,roughplastic=product"})
+    assert_unbiased(scene, sh_direct, mi.load_dict({"type": "path", "max_depth": 2}))
+
+
 def test_sh_path_is_unbiased_with_a_sun_and_an_area_light_beside_the_environment():
     scene = make_scene(rotated=True, area_light=True, sun_light=True,
                        materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "roughplastic", "smooth")})

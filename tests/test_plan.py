@@ -83,12 +83,12 @@ def test_without_a_calibration_the_shipped_model_plans_and_with_one_the_calibrat
     assert costs.cost_model("direct") == costs.SHIPPED_MODELS["direct"]
     assert costs.cost_model("path") == costs.SHIPPED_MODELS["path"]
     calibrated = costs.CostModel(product_code=0.5, environment_only=9.0, product_walk=9.0, product_table=9.0,
-                                 product_only_walk=9.0, product_only_table=9.0)
+                                 product_only_walk=9.0, product_only_table=9.0, bsdf_only=9.0)
     path = costs.save_calibration({"direct": calibrated, "path": calibrated}, seconds=1.0)
     try:
         model = costs.cost_model("direct")
         assert model.source == path and model.product_walk == 9.0
-        # Every product strategy now costs nine passes per unit of film: nothing pays for it.
+        # Every strategy but the environment now costs nine passes per unit of film: nothing pays for it.
         choice = sh_direct().plan(scene_of())
         assert choice.costs["source"] == path
         assert {m.strategy.label for m in choice.materials} <= {"environment"}

@@ -54,7 +54,7 @@ import numpy as np
 
 from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
-from .pilots import (FILM_PILOT_PIXELS, LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
+from .pilots import (FILM_PILOT_PIXELS, LEAN, LEAN_FAMILY, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
                      camera_sample_pass, cosine_pilot, film_variance_factor, frozen_pilots, measure_pass_costs,
                      paired_errors, pilot_pixels)
 from .material_pilots import lane_materials, material_differences, refine
@@ -353,8 +353,7 @@ class Predictions:
     def best_environment_strategies(self, variance: dict) -> dict:
         """Each material's least-variance strategy among Mitsuba's own (the lean kernel's;
         a material forced to a product strategy keeps it)."""
-        cheap = (Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY)
-        return {k: min((s for s in self.allowed[k] if s in cheap), key=lambda s: (variance[k][s], s), default=None)
+        return {k: min((s for s in self.allowed[k] if s in LEAN_FAMILY), key=lambda s: (variance[k][s], s), default=None)
                 or self.allowed[k][0] for k in self.materials}
 
 
@@ -475,21 +474,23 @@ def pilot_density(sensor: mi.Sensor, pilots: Pilots) -> PixelDensity | None:
     return PixelDensity.from_lanes(int(size[0]), int(size[1]), np.asarray(lanes, dtype=np.int64), total)
 
 
-def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool) -> dict:
+def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool, alone: tuple | None = None) -> dict:
     """Pilot name -> :class:`~.pilots.Candidate` (each material's strategy; the lean kernel).
 
     Images need the environment strategy (for ``S``) and each product strategy on every
     material that can run it (for its calibration). Timed pilots also run the lean kernel,
-    ``environment_only`` where the quadrature prefers it for some material, and, where
+    ``environment_only`` and ``bsdf_only`` where the quadrature prefers them for some material, and, where
     cosine lobes and SH lobes could both run a product strategy, that strategy on the
-    cosine lobes alone, which tells the tables' cost from the SH walk's."""
+    cosine lobes alone, which tells the tables' cost from the SH walk's. ``alone``: the
+    strategies that carry every sample to pilot when timed (default: those of ``lean_choice``)."""
     environment = {k: Strategy.ENVIRONMENT for k in p.materials}
     candidates = {LEAN: Candidate.lean_kernel(p.materials)} if timed else {}
     candidates[Strategy.ENVIRONMENT.label] = Candidate(environment)
-    if timed and any(s == Strategy.ENVIRONMENT_ONLY for s in lean_choice.values()):
-        candidates[Strategy.ENVIRONMENT_ONLY.label] = Candidate({
-            **environment, **{k: Strategy.ENVIRONMENT_ONLY for k in p.materials if Strategy.ENVIRONMENT_ONLY
-                              in env.allowed(k)}})
+    wanted = set(lean_choice.values()) if alone is None else set(alone)
+    for strategy in (Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY):
+        if timed and strategy in wanted:
+            candidates[strategy.label] = Candidate({**environment, **{k: strategy for k in p.materials
+                                                                      if strategy in env.allowed(k)}})
     cosine = {k for k in p.materials if env.samples_from_cosine_table(k)}
     for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
         capable = [k for k in p.materials if strategy in env.allowed(k)]
@@ -570,8 +571,8 @@ def pilot_shares(env, p: Predictions) -> dict:
     def share(keys):
         return sum(p.share[k] for k in keys)
 
-    shares = {Strategy.ENVIRONMENT_ONLY.label: share(k for k in p.materials
-                                                     if Strategy.ENVIRONMENT_ONLY in env.allowed(k))}
+    shares = {alone.label: share(k for k in p.materials if alone in env.allowed(k))
+              for alone in (Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY)}
     for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
         capable = [k for k in p.materials if strategy in env.allowed(k)]
         tabled = [k for k in capable if env.samples_from_cosine_table(k)]
@@ -621,7 +622,7 @@ def choose_strategies(env, sensor: mi.Sensor, n_e: int, n_b: int, render_pass: C
     lean_choice = p.best_environment_strategies(p.variance)
     product_possible = any(s.uses_product for k in p.materials for s in p.allowed[k])
     product_forced = any(s.uses_product for s in forced.values())
-    alone_wanted = any(s == Strategy.ENVIRONMENT_ONLY for s in lean_choice.values())
+    alone_wanted = any(s.carries_all for s in lean_choice.values())
     timed = costs is None
     choice, lean, gain, shared, fit, confirmed = lean_choice, not product_forced, 1.0, 0.0, {}, {}
     candidate = {}

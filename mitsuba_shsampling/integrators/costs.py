@@ -62,6 +62,9 @@ class CostModel:
     """Per unit film share on ``product_only``, SH walk, with the BSDF's share
     (``bsdf_defensive_share``): not timed by the pilots (their ``product_only`` runs each
     material as the plan weighs it), so the shipped figure."""
+    bsdf_only: float = 0.079
+    """Per unit film share on ``bsdf_only`` (a BSDF sample, its shadow ray and the map's value in
+    each strategy slot; set from the calibration below)."""
     emitter_sample: float = 0.15
     """Per unit film share of smooth lanes, ``sh_direct``'s sample of the other emitters
     beside the environment's (``emitter_selection`` ``each`` against ``one``: a BSDF
@@ -81,6 +84,7 @@ class CostModel:
         read from the cosine tables; ``shared``: its ``product_only`` gives the BSDF its share)."""
         walk = self.product_only_shared_walk if shared else self.product_only_walk
         return {Strategy.ENVIRONMENT: 0.0, Strategy.ENVIRONMENT_ONLY: self.environment_only,
+                Strategy.BSDF_ONLY: self.bsdf_only,
                 Strategy.PRODUCT: self.product_table if tabled else self.product_walk,
                 Strategy.PRODUCT_ONLY: self.product_only_table if tabled else walk}[strategy]
 
@@ -98,10 +102,10 @@ class CostModel:
         """The model of timed pilot passes.
 
         ``times``: pilot -> pass time (s), with ``lean`` and ``environment`` and any of
-        ``environment_only``, ``product (cosine lobes)``, ``product``, ``product_only
+        ``environment_only``, ``bsdf_only``, ``product (cosine lobes)``, ``product``, ``product_only
         (cosine lobes)``, ``product_only`` (each strategy on every material that can run
         it; the ``(cosine lobes)`` ones on the materials with a cosine table alone).
-        ``shares``: the film shares those pilots switch: ``environment_only`` -> a share,
+        ``shares``: the film shares those pilots switch: ``environment_only`` and ``bsdf_only`` -> a share,
         ``product`` and ``product_only`` -> (tabled share, walked share). A figure without
         its pilot or share is :data:`SHIPPED`'s."""
         lean = times["lean"]
@@ -114,10 +118,10 @@ class CostModel:
                 return default
             return max(times[after] - before, 0.0) / share / lean
 
-        figures = {"product_code": max(base / lean - 1.0, 0.0),
-                   "environment_only": per_share(Strategy.ENVIRONMENT_ONLY.label, base,
-                                                 shares.get(Strategy.ENVIRONMENT_ONLY.label, 0.0),
-                                                 SHIPPED.environment_only)}
+        figures = {"product_code": max(base / lean - 1.0, 0.0)}
+        for alone in (Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY):
+            figures[alone.label] = per_share(alone.label, base, shares.get(alone.label, 0.0),
+                                             getattr(SHIPPED, alone.label))
         for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
             walk, table = f"{strategy.label}_walk", f"{strategy.label}_table"
             tabled, walked = shares.get(strategy.label, (0.0, 0.0))

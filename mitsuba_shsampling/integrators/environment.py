@@ -182,8 +182,8 @@ class ProductEnvironment(EnvironmentState):
     Built from the plugin's checked ``options`` (``max_bands``, ``sh_depth``,
     ``proxy_depth``, ``mis_compensation``, ``defensive_share``, ``strategy``);
     ``carry_all`` allows the strategies that carry every sample of a lane
-    (:attr:`Strategy.PRODUCT_ONLY`, :attr:`Strategy.ENVIRONMENT_ONLY`: ``sh_direct``
-    with BSDF samples); the first needs the product with the uncompensated map
+    (:attr:`Strategy.PRODUCT_ONLY`, :attr:`Strategy.ENVIRONMENT_ONLY`,
+    :attr:`Strategy.BSDF_ONLY`: ``sh_direct`` with BSDF samples); the first needs the product with the uncompensated map
     (:attr:`warp_plain`).
 
     Attributes: ``emitter`` (the envmap or None), ``active`` (bool: this package
@@ -222,9 +222,9 @@ class ProductEnvironment(EnvironmentState):
         self.carry_all = carry_all
         #: ``product_only``'s BSDF share (``sh_direct``'s ``bsdf_defensive_share``, else its default).
         self.bsdf_share = getattr(options, "bsdf_defensive_share", DEFAULT_BSDF_DEFENSIVE_SHARE) if carry_all else 0.0
-        #: Trace the cosine tables' and the SH walk's code whatever the materials run (the
-        #: chooser's pilot passes: :func:`~.chooser.measure_pass_costs`).
-        self.pilot_walks = False
+        #: Trace the cosine tables' and the SH walk's code whatever the materials run, and bsdf_only's draw
+        #: where one of them runs it: the chooser's pilot passes (:func:`~.pilots.measure_pass_costs`).
+        self.pilot_walks = self.pilot_bsdf_alone = False
         #: ``emitter_selection`` as traced, and whether the plan prices it (:mod:`.emitter_selection`).
         self.emitter_selection, self.prices_emitter_selection = initial_emitter_selection(options)
         self.active = False
@@ -353,7 +353,7 @@ class ProductEnvironment(EnvironmentState):
         no_delta = not mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
         lobed = self.warp is not None and key in self.lobes.bsdfs_with_lobes
         result = [Strategy.ENVIRONMENT]
-        result += [Strategy.ENVIRONMENT_ONLY] if self.carry_all and no_delta else []
+        result += [Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY] if self.carry_all and no_delta else []
         result += [Strategy.PRODUCT] if lobed else []
         result += [Strategy.PRODUCT_ONLY] if lobed and no_delta and self.carry_all and self.warp_plain else []
         return result
@@ -421,7 +421,8 @@ class ProductEnvironment(EnvironmentState):
 
     def carries_all(self, si, bsdf, smooth: mi.Bool) -> mi.Bool:
         """Per lane: the lane's material runs a strategy that carries every sample
-        (:attr:`Strategy.PRODUCT_ONLY`, :attr:`Strategy.ENVIRONMENT_ONLY`): no BSDF
+        (:attr:`Strategy.PRODUCT_ONLY`, :attr:`Strategy.ENVIRONMENT_ONLY`,
+        :attr:`Strategy.BSDF_ONLY`): no BSDF
         sample runs there, and the strategy draws from the uncompensated map
         (coverage without a BSDF sample). False (no lane, nothing traced) where the
         integrator does not allow it."""
@@ -430,7 +431,24 @@ class ProductEnvironment(EnvironmentState):
         code = self.strategies.lane(si, smooth)
         no_delta = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
         return mi.Bool(smooth) & no_delta & ((code == int(Strategy.PRODUCT_ONLY))
-                                             | (code == int(Strategy.ENVIRONMENT_ONLY)))
+                                             | (code == int(Strategy.ENVIRONMENT_ONLY))
+                                             | (code == int(Strategy.BSDF_ONLY)))
+
+    @property
+    def draws_bsdf_alone(self) -> bool:
+        """Some material runs ``bsdf_only`` (or the pilots do): only then is its draw traced."""
+        if not self.active or not self.carry_all or self.strategies is None:
+            return False
+        if self.pilot_walks:
+            return self.pilot_bsdf_alone
+        return any(self.strategies.of(key) == Strategy.BSDF_ONLY for key in self.strategies.ids)
+
+    def bsdf_alone(self, si, smooth: mi.Bool) -> mi.Bool | bool:
+        """Per lane: the lane's material runs ``bsdf_only``; False (nothing traced) where
+        no material does (:attr:`draws_bsdf_alone`)."""
+        if not self.draws_bsdf_alone:
+            return False
+        return mi.Bool(smooth) & (self.strategies.lane(si, smooth) == int(Strategy.BSDF_ONLY))
 
     def sample_product(self, lobe, u: mi.Point2f, plain):
         """(direction, exact pdf) of one product sample: from :attr:`warp_plain`
@@ -457,17 +475,32 @@ class ProductEnvironment(EnvironmentState):
         return dr.if_stmt(args=(u,), cond=plain, true_fn=self.env_plain.sample,
                           false_fn=self.env_directions.sample)
 
-    def sample_environment(self, lobe, u: mi.Point2f, use_product, carries_all, bsdf_draw=None):
+    def sample_environment(self, lobe, u: mi.Point2f, use_product, carries_all, bsdf_draw=None, alone=None):
         """(direction, exact pdf) of one sample of the lane's environment strategy: the
         product (:meth:`sample_product`) in ``use_product`` lanes, the environment alone
-        elsewhere, from the uncompensated map in ``carries_all`` lanes. Symbolic
-        branches: a SIMD packet runs only the walks its lanes need.
+        elsewhere, from the uncompensated map in ``carries_all`` lanes, and the BSDF's own
+        sampling in the ``bsdf_only`` lanes of ``alone`` (:class:`BSDFAlone`; None: no such
+        lane). Symbolic branches: a SIMD packet runs only the walks its lanes need.
 
         Given ``bsdf_draw`` (:class:`BSDFDraw`: a BSDF sample's slot), the lanes of
         ``product_only``'s mixture (:meth:`mixes_bsdf`) draw from the BSDF with
         probability ``bsdf_draw.share``, from the product otherwise; the pdf returned is
         then the *product's* at the direction (0 where the BSDF's draw failed), which
         :meth:`carried_weight` turns into the sample's balance weight."""
+        if alone is None or alone.lanes is False:
+            return self._sample_strategy(lobe, u, use_product, carries_all, bsdf_draw)
+        lanes = alone.lanes
+        d, pdf = dr.if_stmt(args=(lobe, u), cond=~lanes,
+                            true_fn=lambda c, v: self._sample_strategy(c, v, use_product, carries_all, bsdf_draw),
+                            false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
+        # The BSDF's own draw, with its own pdf: each sample then weighs BSDF x radiance / pdf,
+        # the estimate of Mitsuba's BSDF sample (a failed draw is a sample of value 0).
+        bs, _ = alone.bsdf.sample(alone.ctx, alone.si, alone.u_component, u, lanes)
+        drew = lanes & (bs.pdf > 0)
+        return dr.select(drew, alone.si.to_world(bs.wo), d), dr.select(lanes, dr.select(drew, bs.pdf, 0.0), pdf)
+
+    def _sample_strategy(self, lobe, u: mi.Point2f, use_product, carries_all, bsdf_draw):
+        """:meth:`sample_environment` in the lanes that sample the environment."""
         if self.warp is None:
             return self.sample_alone(u, carries_all)
         mixes = self.mixes_bsdf(lobe, use_product, carries_all) if bsdf_draw is not None else False
@@ -576,6 +609,19 @@ class BSDFDraw(NamedTuple):
     """A uniform sample: below ``share`` the BSDF draws (and this, rescaled, picks its component)."""
     share: float
     """The probability that the BSDF draws (:attr:`CarriedSlots.bsdf_in_slot`)."""
+
+
+class BSDFAlone(NamedTuple):
+    """What the lanes of ``bsdf_only`` draw with in a strategy sample's slot
+    (:meth:`ProductEnvironment.sample_environment`)."""
+
+    si: mi.SurfaceInteraction3f
+    bsdf: mi.BSDFPtr
+    ctx: mi.BSDFContext
+    u_component: mi.Float
+    """The BSDF sample's 1D sample (its component's choice)."""
+    lanes: mi.Bool
+    """The lanes whose material runs ``bsdf_only`` (:meth:`ProductEnvironment.bsdf_alone`)."""
 
 
 class CarriedSlots(NamedTuple):

@@ -60,6 +60,10 @@ LEAN = "lean"
 LEAN_STRATEGY = Strategy.ENVIRONMENT
 """What every material runs in the :data:`LEAN` pilot."""
 
+LEAN_FAMILY = (Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY)
+"""Mitsuba's own strategies, which the lean kernel runs. Their quadrature is of Mitsuba's own
+sampling, so the pilots scale them together (:func:`calibrate`)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class Candidate:
@@ -298,6 +302,8 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
     times = {name: [] for name in candidates}
     images = {name: [] for name in candidates}
     env.pilot_walks = True
+    # bsdf_only's draw is traced only where some pilot runs it (a 1D sample more per slot).
+    env.pilot_bsdf_alone = any(s == Strategy.BSDF_ONLY for c in candidates.values() for s in c.assignment.values())
     try:
         # Timed: round 0 compiles each kernel once (the render reuses it) and is not timed.
         for round_ in range(repeats + 1 if timed else repeats):
@@ -313,7 +319,7 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
                     images[name].append(image)
     finally:
         env.warp, env.warp_plain = warps
-        env.pilot_walks = False
+        env.pilot_walks = env.pilot_bsdf_alone = False
         table.assign(saved)
     # The report's measure of noise (report.metrics): per-pixel variance, channel-averaged.
     per_pixel = {name: _per_pixel_variance(i) for name, i in images.items() if len(i) > 1}
@@ -330,15 +336,16 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
     pass of the product kernel costs several times its execution at pilot size). The
     per-scene state's arrays are inputs of the recording (:func:`~mitsuba_shsampling.frozen.held_inputs`),
     so a new table is read by the replay, and so are ``objects`` (the scene, sensor and
-    integrator that ``render`` uses), and so is ``env.emitter_selection`` (a Python string
-    that the trace reads: each value is its own recording). Where recording fails, the
+    integrator that ``render`` uses), and so are ``env.emitter_selection`` (a Python string
+    that the trace reads: each value is its own recording) and whether it traces
+    ``bsdf_only``'s draw. Where recording fails, the
     passes render traced."""
     # The recording's closures form a reference cycle inside dr.freeze, which would keep
     # ``render`` (and through it the integrator, its state and the scene) alive until
     # Python's next collection: ``replay.release()`` drops both when the pilots are done.
     target = [render]
 
-    def one_pass(seed, spp, objects, inputs, emitter_selection):
+    def one_pass(seed, spp, objects, inputs, emitter_selection, draws_bsdf_alone):
         return target[0](spp, seed)
 
     frozen, failed = dr.freeze(one_pass), []
@@ -348,7 +355,8 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
             return render(spp, seed)
         with collector_paused():
             try:
-                return frozen(dr.opaque(mi.UInt32, seed), spp, objects, held_inputs(env), env.emitter_selection)
+                return frozen(dr.opaque(mi.UInt32, seed), spp, objects, held_inputs(env), env.emitter_selection,
+                              env.draws_bsdf_alone)
             except RuntimeError:  # e.g. an integrator whose arrays are out of reach: traced from now on
                 failed.append(True)
                 return render(spp, seed)
@@ -393,7 +401,7 @@ def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, var
     shared, scale = shared_part(measured, environment, model[Strategy.ENVIRONMENT.label])
     pilots.shared_variance = shared.value
     if scale.value != 1.0:
-        pilots.calibration = {Strategy.ENVIRONMENT: scale.value, Strategy.ENVIRONMENT_ONLY: scale.value}
+        pilots.calibration = {s: scale.value for s in LEAN_FAMILY}
     for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
         candidate = candidates.get(strategy.label)
         if candidate is None or strategy.label not in measured:

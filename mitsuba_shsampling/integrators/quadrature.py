@@ -84,7 +84,7 @@ def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int
     The product of a cosine lobe is its table's where the lobes say so
     (:meth:`~..lobes.scene_lobes.SceneLobes.sample_from_tables`), else its SH walk's.
 
-    Returns an array (points, 5), indexed by :class:`Strategy` and :data:`PRODUCT_ONLY_SHARED`: the variance
+    Returns an array (points, 6), indexed by :class:`Strategy` and :data:`PRODUCT_ONLY_SHARED`: the variance
     (averaged over the colour channels, as the report's MSE is) of one lane's
     environment estimate with ``n_e`` strategy samples and ``n_b`` BSDF samples
     (power heuristic on sample-count fractions), or with ``n_e + n_b`` strategy
@@ -189,7 +189,7 @@ def mixture_samples(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, directio
 def strategy_variances(samples: dict, n_e: int, n_b: int, product: bool, plain: bool) -> np.ndarray:
     """Each strategy's variance per point (:func:`frame_variances`) from the
     :func:`mixture_samples`, in float64 on the device (a block of ``directions`` lanes per
-    point); returned on the host as (points, 5), the columns of :func:`frame_variances`.
+    point); returned on the host as (points, 6), the columns of :func:`frame_variances`.
 
     Each strategy's variance is estimated as the mean of (Y - I)^2 p / q, Y = w f / p
     its sample's value and I its mean: centred, so that an estimator with a large
@@ -226,7 +226,8 @@ def strategy_variances(samples: dict, n_e: int, n_b: int, product: bool, plain: 
         return sum(one_sample_variance(f, pdf) for f in channels) / (len(channels) * (n_e + n_b))
 
     columns = {Strategy.ENVIRONMENT: mis_variance(samples["environment"]),
-               Strategy.ENVIRONMENT_ONLY: alone_variance(samples["environment_only"])}
+               Strategy.ENVIRONMENT_ONLY: alone_variance(samples["environment_only"]),
+               Strategy.BSDF_ONLY: alone_variance(p_bsdf)}
     # A lane of a product material without a lobe (its back side, where the BSDF is
     # black) samples the environment alone (ProductEnvironment.sample_environment).
     lobed = dr.block_sum(mi.Float64(samples["lobed"]), directions) > 0

@@ -30,7 +30,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
     luminance) with the hierarchical product warp of
     :mod:`mitsuba_shsampling.warp.product`. Each material (BSDF instance) runs
     one environment strategy (``strategy``): the product, the product carrying
-    every sample, or the environment alone; with ``auto`` (the default) the
+    every sample, the environment alone (with the BSDF samples or carrying every
+    sample), or the BSDF's own sampling carrying every sample; with ``auto`` (the default) the
     one predicted to give the least error at equal time is chosen per
     material before the first pass. Strategy and BSDF samples are combined
     with the power heuristic using sample-count fractions, exactly as
@@ -87,7 +88,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
 
         lobe, use_product = env.lobe(si, smooth)
         # Lanes of materials whose strategy carries every sample (product_only,
-        # environment_only) give it the BSDF samples' share too, drawn from the
+        # environment_only, bsdf_only) give it the BSDF samples' share too, drawn from the
         # uncompensated map; the others combine one strategy per sample type under MIS.
         carries_all = env.carries_all(si, bsdf, smooth) if n_b > 0 else False
 
@@ -97,11 +98,15 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # In product_only's lanes the BSDF samples' slots draw from the BSDF or the product
         # and every sample gets the balance weight over the slots (environment.CarriedSlots).
         draws_bsdf = carries_all is not False and env.draws_bsdf
+        # In bsdf_only's lanes every slot draws from the BSDF: a 1D sample more per slot, for its component.
+        draws_bsdf_alone = carries_all is not False and env.draws_bsdf_alone
         slots = env.carried_slots(frac_e, frac_b, env.selection if one_emitter else 1.0) if env.active else None
         for _ in range(n_e):
             nee = selected_emitter_nee if one_emitter else product_nee
-            L += nee(env, scene, sampler.next_2d(smooth), si, bsdf, ctx, lobe=lobe, use_product=use_product,
-                     smooth=smooth, carries_all=carries_all, frac_e=frac_e, frac_b=frac_b, slots=slots) / n_e
+            u = sampler.next_2d(smooth)
+            u_alone = sampler.next_1d(smooth) if draws_bsdf_alone else None
+            L += nee(env, scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product, smooth=smooth,
+                     carries_all=carries_all, frac_e=frac_e, frac_b=frac_b, slots=slots, u_alone=u_alone) / n_e
         for _ in range(0 if one_emitter else n_e):
             L += emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
 
@@ -128,7 +133,8 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 # A strategy sample in a BSDF sample's slot: its share of the lane's samples is frac_b.
                 true_fn=lambda u1, u: product_nee(env, scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product,
                                                   smooth=smooth, carries_all=True, share=frac_b,
-                                                  u_choice=u1 if draws_bsdf else None, slots=slots) / n_b,
+                                                  u_choice=u1 if draws_bsdf else None, slots=slots,
+                                                  u_alone=u1 if draws_bsdf_alone else None) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b, env.needs_emitter_sampling) / n_b)
 

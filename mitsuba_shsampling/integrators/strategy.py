@@ -1,7 +1,7 @@
 """The environment strategies a shading point can use, and which one each material runs.
 
 Every smooth lane samples the environment through this package with one of
-three strategies (:class:`Strategy`). Which one is a property of the lane's BSDF
+the strategies of :class:`Strategy`. Which one is a property of the lane's BSDF
 instance (its *material*): a :class:`StrategyTable` maps each BSDF's registry
 id to a strategy, and the integrators gather it per lane. Lanes of one material
 are coherent, so the symbolic branches that run a strategy's walks agree within
@@ -43,6 +43,13 @@ class Strategy(enum.IntEnum):
     """The uncompensated environment alone carries every sample of the lane, and
     no BSDF sample runs: Mitsuba's ``direct`` with emitter samples only. Same
     conditions as :attr:`PRODUCT_ONLY`; no product code."""
+    BSDF_ONLY = 4
+    """The BSDF's own sampling carries every sample of the lane and no environment
+    sample runs: Mitsuba's ``direct`` with BSDF samples only (``emitter_samples`` 0),
+    the best of Mitsuba's strategies under a uniform or nearly uniform sky, where any
+    sampling of the environment only adds noise. Each sample counts the environment
+    it sees (a shadow ray towards the map); the other emitters keep Mitsuba's emitter
+    sampling, weight 1. Same conditions as :attr:`PRODUCT_ONLY`; no product code."""
 
     @property
     def label(self) -> str:
@@ -56,13 +63,14 @@ class Strategy(enum.IntEnum):
     @property
     def carries_all(self) -> bool:
         """Every sample of the lane is this strategy's (no BSDF sample runs)."""
-        return self in (Strategy.PRODUCT_ONLY, Strategy.ENVIRONMENT_ONLY)
+        return self in (Strategy.PRODUCT_ONLY, Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY)
 
     @property
     def fallback(self) -> Strategy:
         """What a material that cannot run this strategy runs instead."""
         return {Strategy.PRODUCT_ONLY: Strategy.PRODUCT, Strategy.PRODUCT: Strategy.ENVIRONMENT,
-                Strategy.ENVIRONMENT_ONLY: Strategy.ENVIRONMENT}.get(self, Strategy.ENVIRONMENT)
+                Strategy.ENVIRONMENT_ONLY: Strategy.ENVIRONMENT,
+                Strategy.BSDF_ONLY: Strategy.ENVIRONMENT}.get(self, Strategy.ENVIRONMENT)
 
 
 AUTO = "auto"
