@@ -62,9 +62,13 @@ class CostModel:
     """Per unit film share on ``product_only``, SH walk, with the BSDF's share
     (``bsdf_defensive_share``): not timed by the pilots (their ``product_only`` runs each
     material as the plan weighs it), so the shipped figure."""
-    bsdf_only: float = 0.079
-    """Per unit film share on ``bsdf_only`` (a BSDF sample, its shadow ray and the map's value in
-    each strategy slot; set from the calibration below)."""
+    bsdf_only: float = 0.0
+    """Per unit film share on ``bsdf_only`` (in each slot a BSDF sample, a shadow ray and the
+    map's value, where the environment strategy's BSDF sample traces a whole intersection).
+    Less than the environment strategy's own cost on the calibration scene: -0.03 to -0.15
+    lean passes (median -0.07) in five calibrations on a 2-core Xeon, AVX-512 (2026-12-07),
+    against +0.06 to +0.14 for ``environment_only``; 0, as every figure is kept at 0 or more
+    (:meth:`from_pass_times`). ``sh_path`` does not offer it."""
     emitter_sample: float = 0.15
     """Per unit film share of smooth lanes, ``sh_direct``'s sample of the other emitters
     beside the environment's (``emitter_selection`` ``each`` against ``one``: a BSDF
