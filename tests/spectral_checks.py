@@ -135,6 +135,9 @@ def render_checks() -> dict:
         if glossy:
             out["sh_direct_glossy_variance_ratio"] = float(ours.var(axis=0, ddof=1).mean()
                                                            / direct.var(axis=0, ddof=1).mean())
+            # bsdf_only draws the lane's environment samples from the BSDF at the lane's wavelengths.
+            alone = passes(s, mi.load_dict({"type": "sh_direct", "strategy": "bsdf_only"}))
+            out["sh_direct_bsdf_only_glossy_z"] = largest_z(alone, direct)
         path = passes(s, mi.load_dict({"type": "path", "max_depth": 3}), seed=1000)
         ours = passes(s, mi.load_dict({"type": "sh_path", "max_depth": 3, "max_bands": BANDS}))
         out[f"sh_path_{label}_z"] = largest_z(ours, path)

@@ -53,6 +53,10 @@ def test_spectral_renders_are_unbiased_against_mitsubas_integrators(figures, int
         assert figures[f"sh_direct_{scene}_finite"]
 
 
+def test_the_bsdf_only_strategy_is_unbiased_in_the_spectral_variant(figures):
+    assert figures["sh_direct_bsdf_only_glossy_z"] < Z_LIMIT
+
+
 def test_sh_direct_has_lower_variance_than_direct_on_a_glossy_sphere_at_equal_samples(figures):
     assert figures["sh_direct_glossy_variance_ratio"] < 0.9
 

@@ -6,7 +6,7 @@ Example (``sweeps/readme_table.toml`` is a full one)::
     scenes = ["sphere_ggx010", "../my_scenes/teapot.xml"]   # built-in names or XML files
     maps = ["sunsky", "../tests/data/envmaps/*.hdr"]         # built-in names, files, globs, "scene"
     samplers = ["independent"]
-    methods = ["direct", "direct_misc", "env_only", "sh_direct"]
+    methods = ["direct", "direct_misc", "env_only", "bsdf_only", "sh_direct"]
     res = 96
     spp = 16
     passes = 4
