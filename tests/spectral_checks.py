@@ -92,7 +92,7 @@ def copy_radiance_error() -> float:
     return float(np.max(np.abs(a - b) / np.maximum(np.abs(a), 1e-6)))
 
 
-def scene(glossy: bool):
+def scene(glossy: bool, env=None):
     sphere = ({"type": "roughconductor", "distribution": "ggx", "alpha": 0.15} if glossy
               else {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.4, 0.2]}})
     return mi.load_dict({
@@ -104,7 +104,7 @@ def scene(glossy: bool):
         "ball": {"type": "sphere", "center": [0, 0.5, 0], "radius": 0.5, "bsdf": sphere},
         "ground": {"type": "rectangle", "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(3),
                    "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}},
-        "env": envmap(),
+        "env": envmap() if env is None else env,
     })
 
 
@@ -135,9 +135,16 @@ def render_checks() -> dict:
         if glossy:
             out["sh_direct_glossy_variance_ratio"] = float(ours.var(axis=0, ddof=1).mean()
                                                            / direct.var(axis=0, ddof=1).mean())
-            # bsdf_only draws the lane's environment samples from the BSDF at the lane's wavelengths.
-            alone = passes(s, mi.load_dict({"type": "sh_direct", "strategy": "bsdf_only"}))
-            out["sh_direct_bsdf_only_glossy_z"] = largest_z(alone, direct)
+            # bsdf_only draws the lane's environment samples from the BSDF at the lane's wavelengths. Under
+            # a broad coloured window, not the map's sun: BSDF sampling alone finds a sun by rare hits, and
+            # 24 passes that miss them sit below the mean with a small variance (z 10 against direct here,
+            # Mitsuba's own BSDF-only direct z 2.8; the two agree within 1 standard error at 100 x 256 spp).
+            window = envmap_emitter(window_latlong(64, 128) * np.array([1.0, 0.6, 0.3], dtype=np.float32),
+                                    to_world=TILTED)
+            lit = scene(True, env=window)
+            alone = passes(lit, mi.load_dict({"type": "sh_direct", "strategy": "bsdf_only"}))
+            out["sh_direct_bsdf_only_glossy_z"] = largest_z(alone, passes(lit, mi.load_dict({"type": "direct"}),
+                                                                          seed=1000))
         path = passes(s, mi.load_dict({"type": "path", "max_depth": 3}), seed=1000)
         ours = passes(s, mi.load_dict({"type": "sh_path", "max_depth": 3, "max_bands": BANDS}))
         out[f"sh_path_{label}_z"] = largest_z(ours, path)
