@@ -49,7 +49,7 @@ def measure_model(kind: str, res: int):
     from .integrators.chooser import pilot_candidates, pilot_shares, predict
     from .integrators.costs import CostModel
     from .integrators.pilots import PILOT_LANES, measure_pass_costs
-    from .integrators.strategy import Strategy
+    from .integrators.strategy import CARRYING_MITSUBA_STRATEGIES
     from .scenes import builtin_scenes, load_scene
 
     scene = load_scene(builtin_scenes()[CALIBRATION_SCENE], res=res)
@@ -58,7 +58,7 @@ def measure_model(kind: str, res: int):
     env = integrator.scenes.get(scene)
     p = predict(env, sensor, 1, 1, {})
     # Every pilot, those of the strategies that carry every sample too: the calibration prices every strategy.
-    candidates = pilot_candidates(env, p, {}, timed=True, alone=(Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY))
+    candidates = pilot_candidates(env, p, {}, timed=True, alone=CARRYING_MITSUBA_STRATEGIES)
     film = sensor.film().crop_size()
     spp = max(1, -(-PILOT_LANES // (int(film[0]) * int(film[1]))))
 

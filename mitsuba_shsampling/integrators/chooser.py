@@ -54,14 +54,14 @@ import numpy as np
 
 from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
-from .pilots import (FILM_PILOT_PIXELS, LEAN, LEAN_FAMILY, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
+from .pilots import (FILM_PILOT_PIXELS, LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
                      camera_sample_pass, cosine_pilot, film_variance_factor, frozen_pilots, measure_pass_costs,
                      paired_errors, pilot_pixels)
 from .material_pilots import lane_materials, material_differences, refine
 from .pilot_frames import PILOT_FRAMES, PILOT_FRAMES_SEED, PixelDensity
 from .quadrature import PRODUCT_ONLY_SHARED, camera_frames_at, frame_variances, grid_positions
 from . import plan_file
-from .strategy import ESTIMATE, MEASURE, Strategy, strategy_named
+from .strategy import CARRYING_MITSUBA_STRATEGIES, ESTIMATE, MEASURE, MITSUBA_STRATEGIES, Strategy, strategy_named
 
 REQUIRED_GAIN = 1.05
 """A product strategy must be predicted to beat the lean kernel by this factor at
@@ -353,8 +353,8 @@ class Predictions:
     def best_environment_strategies(self, variance: dict) -> dict:
         """Each material's least-variance strategy among Mitsuba's own (the lean kernel's;
         a material forced to a product strategy keeps it)."""
-        return {k: min((s for s in self.allowed[k] if s in LEAN_FAMILY), key=lambda s: (variance[k][s], s), default=None)
-                or self.allowed[k][0] for k in self.materials}
+        return {k: min((s for s in self.allowed[k] if s in MITSUBA_STRATEGIES), key=lambda s: (variance[k][s], s),
+                       default=None) or self.allowed[k][0] for k in self.materials}
 
 
 @dataclasses.dataclass
@@ -487,7 +487,7 @@ def pilot_candidates(env, p: Predictions, lean_choice: dict, timed: bool, alone:
     candidates = {LEAN: Candidate.lean_kernel(p.materials)} if timed else {}
     candidates[Strategy.ENVIRONMENT.label] = Candidate(environment)
     wanted = set(lean_choice.values()) if alone is None else set(alone)
-    for strategy in (Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY):
+    for strategy in CARRYING_MITSUBA_STRATEGIES:
         if timed and strategy in wanted:
             candidates[strategy.label] = Candidate({**environment, **{k: strategy for k in p.materials
                                                                       if strategy in env.allowed(k)}})
@@ -572,7 +572,7 @@ def pilot_shares(env, p: Predictions) -> dict:
         return sum(p.share[k] for k in keys)
 
     shares = {alone.label: share(k for k in p.materials if alone in env.allowed(k))
-              for alone in (Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY)}
+              for alone in CARRYING_MITSUBA_STRATEGIES}
     for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
         capable = [k for k in p.materials if strategy in env.allowed(k)]
         tabled = [k for k in capable if env.samples_from_cosine_table(k)]

@@ -34,7 +34,7 @@ import os
 import mitsuba as mi
 
 from ..build_cache import cache_folder, code_digest
-from .strategy import Strategy
+from .strategy import CARRYING_MITSUBA_STRATEGIES, Strategy
 
 CALIBRATION_FILE = "costs-{variant}.json"
 """Name of the calibration file in the cache folder (per variant)."""
@@ -123,7 +123,7 @@ class CostModel:
             return max(times[after] - before, 0.0) / share / lean
 
         figures = {"product_code": max(base / lean - 1.0, 0.0)}
-        for alone in (Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY):
+        for alone in CARRYING_MITSUBA_STRATEGIES:
             figures[alone.label] = per_share(alone.label, base, shares.get(alone.label, 0.0),
                                              getattr(SHIPPED, alone.label))
         for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):

@@ -183,8 +183,8 @@ class ProductEnvironment(EnvironmentState):
     ``proxy_depth``, ``mis_compensation``, ``defensive_share``, ``strategy``);
     ``carry_all`` allows the strategies that carry every sample of a lane
     (:attr:`Strategy.PRODUCT_ONLY`, :attr:`Strategy.ENVIRONMENT_ONLY`,
-    :attr:`Strategy.BSDF_ONLY`: ``sh_direct`` with BSDF samples); the first needs the product with the uncompensated map
-    (:attr:`warp_plain`).
+    :attr:`Strategy.BSDF_ONLY`: ``sh_direct`` with BSDF samples); the first needs the
+    product with the uncompensated map (:attr:`warp_plain`).
 
     Attributes: ``emitter`` (the envmap or None), ``active`` (bool: this package
     samples the environment in this scene), ``reason`` (why not, when inactive),
@@ -430,9 +430,10 @@ class ProductEnvironment(EnvironmentState):
             return False
         code = self.strategies.lane(si, smooth)
         no_delta = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
-        return mi.Bool(smooth) & no_delta & ((code == int(Strategy.PRODUCT_ONLY))
-                                             | (code == int(Strategy.ENVIRONMENT_ONLY))
-                                             | (code == int(Strategy.BSDF_ONLY)))
+        carrying = mi.Bool(False)
+        for strategy in (s for s in Strategy if s.carries_all):
+            carrying |= code == int(strategy)
+        return mi.Bool(smooth) & no_delta & carrying
 
     @property
     def draws_bsdf_alone(self) -> bool:

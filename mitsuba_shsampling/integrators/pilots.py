@@ -26,7 +26,7 @@ import numpy as np
 from ..device_arrays import device_array
 from ..frozen import collector_paused, held_inputs
 from ..timing import kernel_time
-from .strategy import Strategy
+from .strategy import MITSUBA_STRATEGIES, Strategy
 
 PILOT_LANES = 2**17
 """Camera samples per film pilot pass at least (spp is rounded up so that the film gets this many)."""
@@ -59,10 +59,6 @@ LEAN = "lean"
 
 LEAN_STRATEGY = Strategy.ENVIRONMENT
 """What every material runs in the :data:`LEAN` pilot."""
-
-LEAN_FAMILY = (Strategy.ENVIRONMENT, Strategy.ENVIRONMENT_ONLY, Strategy.BSDF_ONLY)
-"""Mitsuba's own strategies, which the lean kernel runs. Their quadrature is of Mitsuba's own
-sampling, so the pilots scale them together (:func:`calibrate`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -401,7 +397,7 @@ def calibrate(pilots: Pilots, measured: dict, model: dict, candidates: dict, var
     shared, scale = shared_part(measured, environment, model[Strategy.ENVIRONMENT.label])
     pilots.shared_variance = shared.value
     if scale.value != 1.0:
-        pilots.calibration = {s: scale.value for s in LEAN_FAMILY}
+        pilots.calibration = {s: scale.value for s in MITSUBA_STRATEGIES}
     for strategy in (Strategy.PRODUCT, Strategy.PRODUCT_ONLY):
         candidate = candidates.get(strategy.label)
         if candidate is None or strategy.label not in measured:

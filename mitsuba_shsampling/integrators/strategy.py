@@ -73,6 +73,13 @@ class Strategy(enum.IntEnum):
                 Strategy.BSDF_ONLY: Strategy.ENVIRONMENT}.get(self, Strategy.ENVIRONMENT)
 
 
+MITSUBA_STRATEGIES = tuple(s for s in Strategy if not s.uses_product)
+"""Mitsuba's own strategies, without product code: what the lean kernel runs. The quadrature
+predicts them from Mitsuba's own sampling, so the pilots scale them together."""
+
+CARRYING_MITSUBA_STRATEGIES = tuple(s for s in MITSUBA_STRATEGIES if s.carries_all)
+"""Mitsuba's own strategies that carry every sample: ``environment_only`` and ``bsdf_only``."""
+
 AUTO = "auto"
 """The ``strategy`` parameter's value that lets :mod:`.chooser` decide per material."""
 
