@@ -155,6 +155,15 @@ def test_bsdf_only_beside_the_product_strategies_is_unbiased_with_other_lights_a
     assert_unbiased(scene, sh_direct, mi.load_dict({"type": "path", "max_depth": 2}))
 
 
+def test_bsdf_only_forced_is_unbiased_for_every_supported_bsdf_and_wrapper():
+    # Wrappers with a Dirac or null part (mask, a smooth conductor) cannot skip the BSDF sample
+    # and fall back to the environment strategy; the others draw every sample from the BSDF.
+    materials = {**MATERIALS, "mask": {"type": "mask", "opacity": 0.6, "bsdf": MATERIALS["ggx"]}}
+    scene = make_scene(materials=materials)
+    assert_unbiased(scene, mi.load_dict({"type": "sh_direct", "max_bands": BANDS, "strategy": "bsdf_only"}),
+                    mi.load_dict({"type": "path", "max_depth": 2}), passes=16)
+
+
 def test_sh_path_is_unbiased_with_a_sun_and_an_area_light_beside_the_environment():
     scene = make_scene(rotated=True, area_light=True, sun_light=True,
                        materials={k: MATERIALS[k] for k in ("ggx", "diffuse", "roughplastic", "smooth")})
