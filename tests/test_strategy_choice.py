@@ -721,6 +721,13 @@ def test_sh_direct_accepts_auto_and_every_strategy(value):
     assert DirectOptions(strategy=value).strategy == value
 
 
+@pytest.mark.parametrize("value", ["bsdf_only", "product,glossy=bsdf_only"])
+def test_bsdf_only_without_bsdf_samples_is_refused_rather_than_run_as_the_environment(value):
+    with pytest.raises(OptionError, match="'bsdf_only' with 'bsdf_samples' > 0"):
+        DirectOptions(strategy=value, bsdf_samples=0, mis_compensation=False)
+    assert DirectOptions(strategy="product_only", bsdf_samples=0, mis_compensation=False).bsdf_samples == 0
+
+
 @pytest.mark.parametrize("value", ["Product", "mis", "", 1])
 def test_other_strategy_values_are_refused_with_the_list_of_valid_ones(value):
     with pytest.raises(OptionError, match="strategy"):

@@ -314,6 +314,12 @@ class DirectOptions(ProductOptions):
         if self.emitter_selection not in self.EMITTER_SELECTIONS:
             self._fail("emitter_selection", "must be one of "
                        + ", ".join(f"'{v}'" for v in self.EMITTER_SELECTIONS), self.emitter_selection)
+        # The strategies that carry every sample take the BSDF samples' slots; without any, the
+        # others are what they would be with them, but bsdf_only would silently become the environment.
+        if self.bsdf_samples == 0 and Strategy.BSDF_ONLY.label in [self.default_strategy,
+                                                                   *self.material_strategies.values()]:
+            self._fail("strategy", "can only be 'bsdf_only' with 'bsdf_samples' > 0 (Mitsuba's direct with "
+                       "'emitter_samples' 0 draws from the BSDF alone)", self.strategy)
 
     def __post_init__(self) -> None:
         super().__post_init__()
