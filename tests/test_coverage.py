@@ -187,6 +187,40 @@ def test_lanes_without_a_bsdf_sample_are_covered_by_their_uncompensated_strategy
     assert share < 1e-6
 
 
+@pytest.mark.parametrize("name", ["diffuse", "ggx_0.05", "beckmann_0.3", "twosided"])
+def test_a_bsdf_only_draw_returns_the_bsdfs_own_density_of_its_direction(name):
+    """The pdf that bsdf_only's slot hands the estimator is the BSDF's pdf of the direction it drew
+    (0 only where the BSDF's draw failed), so each sample weighs BSDF x radiance / that pdf."""
+    from mitsuba_shsampling.integrators.environment import BSDFAlone
+
+    scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(),
+                          "ball": {"type": "sphere", "radius": 1.0, "bsdf": BSDFS[name]}})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        env = ProductEnvironment(scene, ProductOptions(max_bands=8, sh_depth=3, strategy="bsdf_only"), carry_all=True)
+    rng = np.random.default_rng(1)
+    origin = rng.normal(size=(2048, 3))
+    origin = (4.0 * origin / np.linalg.norm(origin, axis=1, keepdims=True)).astype(np.float32)
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(origin.T), mi.Vector3f(dr.normalize(mi.Vector3f(-origin.T)))))
+    bsdf, ctx = si.bsdf(), mi.BSDFContext()
+    smooth = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    lanes = env.bsdf_alone(si, smooth)
+    u1, u2 = (mi.Float(rng.random(2048).astype(np.float32)) for _ in range(2))
+    lobe, use_product = env.lobe(si, smooth)
+    d, pdf = env.sample_environment(lobe, mi.Point2f(u1, u2), use_product, env.carries_all(si, bsdf, smooth),
+                                    alone=BSDFAlone(si, bsdf, ctx, mi.Float(rng.random(2048).astype(np.float32)),
+                                                    lanes))
+    value, own = bsdf.eval_pdf(ctx, si, si.to_local(d), lanes)
+    drawn = np.broadcast_to(lanes.numpy(), (2048,)) & (pdf.numpy() > 0)
+    assert drawn.mean() > 0.9
+    # A GGX draw can leave the hemisphere (a microfacet seen at grazing angles): the BSDF's pdf and
+    # value are 0 there, so the sample is worth 0 whatever density it came with, as in Mitsuba's own.
+    counted = drawn & (own.numpy() > 0)
+    assert np.all(np.max(np.abs(value.numpy()), axis=0)[drawn & ~counted] == 0.0)
+    assert counted.sum() > 0.99 * drawn.sum()
+    assert np.allclose(pdf.numpy()[counted], own.numpy()[counted], rtol=1e-4)
+
+
 def strategies_of(bsdf: dict, carry_all: bool = True, **options) -> list[str]:
     scene = mi.load_dict({"type": "scene", "env": hard_sun_emitter(), "ball": {"type": "sphere", "bsdf": bsdf}})
     with warnings.catch_warnings():
