@@ -488,7 +488,7 @@ class ProductEnvironment(EnvironmentState):
         probability ``bsdf_draw.share``, from the product otherwise; the pdf returned is
         then the *product's* at the direction (0 where the BSDF's draw failed), which
         :meth:`carried_weight` turns into the sample's balance weight."""
-        if alone is None or alone.lanes is False:
+        if alone is None:
             return self._sample_strategy(lobe, u, use_product, carries_all, bsdf_draw)
         lanes = alone.lanes
         d, pdf = dr.if_stmt(args=(lobe, u), cond=~lanes,

@@ -14,7 +14,7 @@ from typing import Callable, NamedTuple
 import drjit as dr
 import mitsuba as mi
 
-from .environment import BSDFAlone, BSDFDraw
+from .environment import BSDFDraw
 
 
 def mis_weight(pdf_a, pdf_b):
@@ -232,7 +232,7 @@ def mitsuba_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, samp
 
 def product_nee(env, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carries_all,
                 frac_e: float = 0.5, frac_b: float = 0.5, share: float | None = None,
-                u_choice=None, slots=None, u_alone=None, differentiable: bool = False):
+                u_choice=None, slots=None, alone=None, differentiable: bool = False):
     """One sample of the environment (BSDF value x radiance / pdf) in the ``smooth``
     lanes, with the lane's strategy in ``env`` (a :class:`~.environment.ProductEnvironment`:
     its ``sample_environment``).
@@ -247,8 +247,9 @@ def product_nee(env, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carr
     (:class:`~.environment.CarriedSlots`), for the balance weights of ``product_only``'s
     lanes; ``u_choice``: a further uniform sample, given in a BSDF sample's slot, with
     which those lanes draw from the BSDF or the product (without it, from the product).
-    ``u_alone``: the 1D sample with which the lanes of ``bsdf_only`` draw from the BSDF
-    (:func:`bsdf_alone`). ``differentiable``: see :func:`environment_sample`."""
+    ``alone``: what the lanes of ``bsdf_only`` draw from the BSDF with
+    (:class:`~.environment.BSDFAlone`; None where no lane runs it). ``differentiable``: see
+    :func:`environment_sample`."""
     if not env.active:
         return mi.Spectrum(0.0)
     share = frac_e if share is None else share
@@ -256,12 +257,11 @@ def product_nee(env, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carr
     # (No lane carries all: the state's own strategies, an oracle's too, and nothing of the mixture.)
     bsdf_draw = None if carries_all is False or u_choice is None else BSDFDraw(si, bsdf, ctx, u_choice,
                                                                                 slots.bsdf_in_slot)
-    alone = bsdf_alone(env, si, bsdf, ctx, smooth, carries_all, u_alone)
-    # (Only what is drawn with: an oracle's sampling takes neither.)
-    extra = (bsdf_draw, alone) if alone is not None else (bsdf_draw,) if bsdf_draw is not None else ()
+    # Only what is drawn with (an oracle's sampling takes neither).
+    draws = {name: v for name, v in (("bsdf_draw", bsdf_draw), ("alone", alone)) if v is not None}
     # Packets without a smooth lane (sky, delta BSDFs) skip the walks.
     d, pdf_e = dr.if_stmt(args=(lobe, u), cond=smooth,
-                          true_fn=lambda c, v: env.sample_environment(c, v, use_product, carries_all, *extra),
+                          true_fn=lambda c, v: env.sample_environment(c, v, use_product, carries_all, **draws),
                           false_fn=lambda c, v: (mi.Vector3f(0.0, 0.0, 1.0), mi.Float(0.0)))
 
     def weight(bsdf_pdf):
@@ -275,15 +275,6 @@ def product_nee(env, scene, u, si, bsdf, ctx, *, lobe, use_product, smooth, carr
     return environment_sample(scene, si, bsdf, ctx, d, pdf_e, smooth, weight, differentiable)
 
 
-def bsdf_alone(env, si, bsdf, ctx, smooth, carries_all, u_alone) -> BSDFAlone | None:
-    """What the ``bsdf_only`` lanes draw a strategy sample with (None where no lane can run
-    it: no ``u_alone``, no lane that carries all, or no material on ``bsdf_only``)."""
-    if u_alone is None or carries_all is False:
-        return None
-    lanes = env.bsdf_alone(si, smooth)
-    return None if lanes is False else BSDFAlone(si, bsdf, ctx, u_alone, lanes)
-
-
 def emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all=False,
                 differentiable: bool = False):
     """One sample of Mitsuba's emitter sampling, without the environment's
@@ -294,7 +285,7 @@ def emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carr
 
 
 def selected_emitter_nee(env, scene, u: mi.Point2f, si, bsdf, ctx, *, lobe, use_product, smooth, carries_all,
-                         frac_e: float, frac_b: float, slots=None, u_alone=None) -> mi.Spectrum:
+                         frac_e: float, frac_b: float, slots=None, alone=None) -> mi.Spectrum:
     """One sample of one emitter in the ``smooth`` lanes: the emitter drawn as Mitsuba's
     scene draws it (``Scene.sample_emitter``: uniformly, or by the emitters'
     ``sampling_weight``), then the lane's environment strategy in ``env`` where that is
@@ -307,13 +298,12 @@ def selected_emitter_nee(env, scene, u: mi.Point2f, si, bsdf, ctx, *, lobe, use_
     with ``selection``). Weights as in :func:`product_nee` (``share`` in ``carries_all``
     lanes, which run no BSDF sample, so 1 for other emitters there) and
     :func:`mitsuba_emitter_sample` (1 for Dirac emitters); ``slots`` as in :func:`product_nee`
-    (this is an emitter sample's slot: it draws no BSDF direction); ``u_alone`` as in
+    (this is an emitter sample's slot: it draws no BSDF direction); ``alone`` as in
     :func:`product_nee` (the ``bsdf_only`` lanes draw the environment's direction from the BSDF)."""
     smooth = mi.Bool(smooth)
     index, _, u_x = scene.sample_emitter(u.x, smooth)
     to_env = smooth & (index == env.emitter_index)
     to_other = smooth & ~to_env
-    alone = bsdf_alone(env, si, bsdf, ctx, smooth, carries_all, u_alone)
     # The reprojected component keeps the environment strategy's 2D sample stratified.
     d_env, pdf_direction = dr.if_stmt(
         args=(lobe, mi.Point2f(u_x, u.y)), cond=to_env,

@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .chooser import StrategyChooser
-from .environment import ProductEnvironment
+from .environment import BSDFAlone, ProductEnvironment
 from .estimators import (bsdf_sample_of_emitters, dirac_sample_of_emitters, emitter_nee, first_hit, product_nee,
                          selected_emitter_nee)
 from .options import DirectOptions, document_parameters
@@ -98,15 +98,19 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
         # In product_only's lanes the BSDF samples' slots draw from the BSDF or the product
         # and every sample gets the balance weight over the slots (environment.CarriedSlots).
         draws_bsdf = carries_all is not False and env.draws_bsdf
-        # In bsdf_only's lanes every slot draws from the BSDF: a 1D sample more per slot, for its component.
-        draws_bsdf_alone = carries_all is not False and env.draws_bsdf_alone
+        # In bsdf_only's lanes every slot draws from the BSDF: a 1D sample more per slot, for its
+        # component (drawn only where some material runs it, so other plans keep their sample streams).
+        alone_lanes = env.bsdf_alone(si, smooth) if carries_all is not False else False
+
+        def alone(u_component):
+            return None if alone_lanes is False else BSDFAlone(si, bsdf, ctx, u_component, alone_lanes)
         slots = env.carried_slots(frac_e, frac_b, env.selection if one_emitter else 1.0) if env.active else None
         for _ in range(n_e):
             nee = selected_emitter_nee if one_emitter else product_nee
             u = sampler.next_2d(smooth)
-            u_alone = sampler.next_1d(smooth) if draws_bsdf_alone else None
+            drawn_alone = alone(sampler.next_1d(smooth)) if alone_lanes is not False else None
             L += nee(env, scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product, smooth=smooth,
-                     carries_all=carries_all, frac_e=frac_e, frac_b=frac_b, slots=slots, u_alone=u_alone) / n_e
+                     carries_all=carries_all, frac_e=frac_e, frac_b=frac_b, slots=slots, alone=drawn_alone) / n_e
         for _ in range(0 if one_emitter else n_e):
             L += emitter_nee(env, scene, sampler, si, bsdf, ctx, smooth, frac_e, frac_b, carries_all) / n_e
 
@@ -134,7 +138,7 @@ class SHDirectIntegrator(mi.SamplingIntegrator):
                 true_fn=lambda u1, u: product_nee(env, scene, u, si, bsdf, ctx, lobe=lobe, use_product=use_product,
                                                   smooth=smooth, carries_all=True, share=frac_b,
                                                   u_choice=u1 if draws_bsdf else None, slots=slots,
-                                                  u_alone=u1 if draws_bsdf_alone else None) / n_b,
+                                                  alone=alone(u1)) / n_b,
                 false_fn=lambda u1, u2: bsdf_sample_of_emitters(scene, hit, u1, u2, strategy_pdf,
                                                                 frac_e, frac_b, env.needs_emitter_sampling) / n_b)
 
