@@ -216,31 +216,6 @@ def test_the_plan_and_the_render_read_no_memory_whose_alignment_varies_from_run_
 
 # ------------------------------------------------------------ pinning
 
-@pytest.mark.parametrize("users_setting", [True, False])
-def test_the_set_up_asks_numpy_for_no_huge_pages_and_gives_the_users_setting_back(monkeypatch, users_setting):
-    from mitsuba_shsampling import host_memory
-
-    def setting():  # numpy's switch returns the value it replaces
-        current = host_memory._SWITCH(False)
-        host_memory._SWITCH(current)
-        return current
-
-    seen, sh = [], sh_direct()
-    original = sh.prepare_scene
-
-    def spied(*args, **kwargs):
-        seen.append(setting())
-        return original(*args, **kwargs)
-    monkeypatch.setattr(sh, "prepare_scene", spied)
-    previous = host_memory._SWITCH(users_setting)
-    try:
-        sh.plan(scene_of())
-        assert seen == [False]
-        assert setting() is users_setting
-    finally:
-        host_memory._SWITCH(previous)
-
-
 def test_plan_is_made_before_the_first_render_and_the_render_keeps_it(monkeypatch):
     scene = scene_of()
     sh = sh_direct()

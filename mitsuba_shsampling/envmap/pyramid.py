@@ -40,6 +40,7 @@ import numpy as np
 from ..build_cache import cached_build, content_key
 from ..device_arrays import aligned_empty, device_array
 from ..grid import TWO_PI, Cell
+from ..host_memory import kept_copy, ordinary_pages
 
 #: Deepest level built by default. 2^11 x 2^11 cells resolve a 2k map; the
 #: pyramid takes 39 MB. Deeper levels would not help the warps anyway: rescaling
@@ -880,6 +881,27 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
     :mod:`~mitsuba_shsampling.build_cache` record: ``buffer`` (levels 0..D-1 in 4-float
     blocks), ``records`` (level D's leaf records), ``depth`` D after trimming,
     ``trimmed_levels``, ``total`` (the root), ``radiant_total`` and ``compensated``."""
+    # The sums and the level test touch ~9x the memory of what is kept (a depth-11 map: ~400 MB
+    # against 39 MB): on ordinary pages (host_memory). What is kept, read at random by every
+    # pass, is copied out of them, into pages the process gives as it would.
+    with ordinary_pages():
+        finest, corners, levels, blocks, depth, built_depth, radiant_total, compensated = _summed_and_trimmed(
+            luminance, scale, depth, mis_compensation, level_tolerance)
+        # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
+        # leaf records with the corners they need (see :func:`leaf_records`).
+        buffer = mi.Float(blocks_buffer(levels, blocks, depth - 1)).numpy()
+        records = leaf_records(mi.Float(blocks[depth]), corners)
+        total = float(levels[0].numpy()[0])
+    # Never written to again: the pyramid maps them without another copy.
+    return {"buffer": kept_copy(buffer), "records": kept_copy(records),
+            "depth": depth, "trimmed_levels": built_depth - depth, "total": total,
+            "radiant_total": radiant_total, "compensated": compensated}
+
+
+def _summed_and_trimmed(luminance: np.ndarray, scale: float, depth: int, mis_compensation: bool,
+                        level_tolerance: float) -> tuple:
+    """:func:`_pyramid_arrays`' levels before they are packed: (finest, corners at the kept
+    depth, levels, blocks, kept depth, built depth, radiant total, compensated)."""
     level = _target_at_finest_level(luminance, scale, depth)  # kept alive for the other pyramid's build
     finest, corners = level.arrays
     radiant_total = float(dr.sum(finest).numpy()[0])
@@ -907,12 +929,5 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
     # other corner are the coarser level's exactly (its corners are a subset of theirs).
     depth = trimmed_depth(levels, corners, level_tolerance)  # checked by the constructors
     corners = corners_at_level(corners, built_depth, depth)
-    # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
-    # leaf records with the corners they need (see :func:`leaf_records`).
-    buffer = mi.Float(blocks_buffer(levels, blocks, depth - 1)).numpy()
-    records = leaf_records(mi.Float(blocks[depth]), corners)
-    # Views of Dr.Jit's memory, never written to again: the pyramid maps them without a copy.
-    buffer.flags.writeable = records.flags.writeable = False
-    return {"buffer": buffer, "records": records,
-            "depth": depth, "trimmed_levels": built_depth - depth, "total": float(levels[0].numpy()[0]),
-            "radiant_total": radiant_total, "compensated": compensated}
+    dr.eval(corners)
+    return finest, corners, levels, blocks, depth, built_depth, radiant_total, compensated

@@ -29,7 +29,6 @@ import drjit as dr
 import mitsuba as mi
 
 from ..frozen import held_inputs
-from ..host_memory import ordinary_pages
 
 from .chooser import StrategyChooser
 from .emitter_selection import DESIGNS
@@ -137,8 +136,7 @@ def prepared(integrator, scene: mi.Scene, sensor=0) -> None:
                 "collector during each call, or call gc.disable() around it")
         integrator.scenes.get(scene)  # the state made before, or FrozenBeforePlanError
         return
-    with ordinary_pages():  # numpy's set-up arrays on 4 kB pages (host_memory: why)
-        state = integrator.prepare_scene(scene, sensor)
+    state = integrator.prepare_scene(scene, sensor)
     # Walked on every call, not once per state: a re-plan replaces arrays inside the same state
     # (the strategy table), and a recording must find the current ones.
     integrator.frozen_inputs = held_inputs(state) + [design_marker(state)]
