@@ -12,9 +12,11 @@ ordinary pages").
 :func:`ordinary_pages` turns huge pages off for the process while such work runs
 (``prctl(PR_SET_THP_DISABLE)``, read at each page fault) and numpy's request off too
 (``_set_madvise_hugepage``, where ``prctl`` cannot be called); the previous settings are
-put back when the outermost block ends. Only the temporaries go there: memory that the
-passes read at random (the pyramid's kept levels) is made outside, on the pages the
-process would give it (from 4 kB pages the passes ran 1-2 % slower; same section).
+put back when the outermost block ends. Only the pyramid's temporaries go there, and what
+it keeps is copied out (:func:`kept_copy`): with the whole set-up on 4 kB pages the passes
+ran 1-3 % slower, since Dr.Jit hands freed blocks to later allocations of the same size and
+the passes' own arrays landed on the set-up's small pages; the cosine tables' sums (16 MB
+blocks, the size of a pass's arrays) did the same (same section).
 """
 
 from __future__ import annotations

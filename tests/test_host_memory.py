@@ -1,6 +1,6 @@
 """Specification of the set-up's memory pages (``host_memory``).
 
-The pyramid's and the cosine tables' short-lived sums are made on ordinary 4 kB pages, the
+The pyramid's short-lived sums are made on ordinary 4 kB pages, the
 process's huge-page settings are put back afterwards, and what the passes read for the
 whole render is copied into memory of its own (so that neither Dr.Jit's nor the C
 library's reuse of freed memory puts it on the sums' pages). Whether Linux then backs that
@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import mmap
 
-import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -22,8 +21,6 @@ from mitsuba_shsampling import build_cache, host_memory  # noqa: E402
 from mitsuba_shsampling.device_arrays import device_array  # noqa: E402
 from mitsuba_shsampling.envmap import EnvPyramid  # noqa: E402
 from mitsuba_shsampling.envmap import pyramid as pyramid_module  # noqa: E402
-from mitsuba_shsampling.warp import cosine_table as cosine_module  # noqa: E402
-from mitsuba_shsampling.warp.cosine_table import CosineTable  # noqa: E402
 
 needs_prctl = pytest.mark.skipif(host_memory.process_thp_disabled() is None,
                                  reason="prctl(PR_GET_THP_DISABLE) is Linux's")
@@ -94,11 +91,3 @@ def test_a_pyramid_sums_on_ordinary_pages_and_keeps_its_levels_in_kept_copies(mo
         memory = array.numpy()
         assert memory.ctypes.data % mmap.PAGESIZE == 0, "the kept levels are read from a mapping of their own"
 
-    kept = []
-    original_copy = cosine_module.kept_copy
-    monkeypatch.setattr(cosine_module, "kept_copy", lambda values, dtype=None: kept.append(
-        settings()) or original_copy(values, dtype))
-    table = CosineTable(pyramid, 0.1)
-    assert kept == [(False, True)], "the tables are copied out after the sums' block"
-    assert table.buffer.numpy().ctypes.data % mmap.PAGESIZE == 0
-    dr.eval(table.buffer)
