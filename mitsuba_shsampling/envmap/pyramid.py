@@ -885,7 +885,7 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
     # against 39 MB): on ordinary pages (host_memory). What is kept, read at random by every
     # pass, is copied out of them, into pages the process gives as it would.
     with ordinary_pages():
-        finest, corners, levels, blocks, depth, built_depth, radiant_total, compensated = _summed_and_trimmed(
+        corners, levels, blocks, depth, built_depth, radiant_total, compensated = _summed_and_trimmed(
             luminance, scale, depth, mis_compensation, level_tolerance)
         # Levels 0 .. D-1 stay in 4-float blocks; the finest level's blocks go into the
         # leaf records with the corners they need (see :func:`leaf_records`).
@@ -900,8 +900,8 @@ def _pyramid_arrays(luminance: np.ndarray, scale: float, depth: int, mis_compens
 
 def _summed_and_trimmed(luminance: np.ndarray, scale: float, depth: int, mis_compensation: bool,
                         level_tolerance: float) -> tuple:
-    """:func:`_pyramid_arrays`' levels before they are packed: (finest, corners at the kept
-    depth, levels, blocks, kept depth, built depth, radiant total, compensated)."""
+    """:func:`_pyramid_arrays`' levels before they are packed: (the target at the kept depth's
+    corners, levels, blocks, kept depth, built depth, radiant total, compensated)."""
     level = _target_at_finest_level(luminance, scale, depth)  # kept alive for the other pyramid's build
     finest, corners = level.arrays
     radiant_total = float(dr.sum(finest).numpy()[0])
@@ -930,4 +930,4 @@ def _summed_and_trimmed(luminance: np.ndarray, scale: float, depth: int, mis_com
     depth = trimmed_depth(levels, corners, level_tolerance)  # checked by the constructors
     corners = corners_at_level(corners, built_depth, depth)
     dr.eval(corners)
-    return finest, corners, levels, blocks, depth, built_depth, radiant_total, compensated
+    return corners, levels, blocks, depth, built_depth, radiant_total, compensated
