@@ -30,6 +30,8 @@ import threading
 
 import numpy as np
 
+from .device_arrays import aligned_empty
+
 PR_SET_THP_DISABLE, PR_GET_THP_DISABLE = 41, 42
 """Linux's ``prctl`` options (``linux/prctl.h``, since 3.15)."""
 
@@ -115,7 +117,7 @@ def ordinary_pages():
                 _put_back(_SAVED)
 
 
-def kept_copy(values: np.ndarray, dtype=None) -> np.ndarray:
+def kept_copy(values: np.ndarray) -> np.ndarray:
     """A read-only copy of ``values`` in memory of its own, mapped for it and first touched
     outside any :func:`ordinary_pages` block, with huge pages asked for as Dr.Jit and numpy
     ask for them (page-aligned, so :func:`~.device_arrays.device_array` maps it as it is).
@@ -124,11 +126,12 @@ def kept_copy(values: np.ndarray, dtype=None) -> np.ndarray:
     array made after an :func:`ordinary_pages` block may be made in the block's 4 kB pages
     (a depth-11 pyramid's levels made by a kernel after the block: none of 86 sampled pages
     huge; copied into numpy's new arrays: 0-32 of 86). A mapping of its own is new memory.
-    ``dtype``: the copy's (default ``values``'), as the kernels read it: a conversion made
-    later would copy again, into memory of the allocator's choice."""
-    dtype = np.dtype(values.dtype if dtype is None else dtype)
-    out = np.frombuffer(_new_mapping(max(values.size * dtype.itemsize, 1)), dtype=dtype, count=values.size)
-    out = out.reshape(values.shape)
+    Where ``mmap`` has no private anonymous mappings (Windows), an aligned numpy copy."""
+    if hasattr(mmap, "MAP_PRIVATE"):
+        out = np.frombuffer(_new_mapping(max(values.nbytes, 1)), dtype=values.dtype, count=values.size)
+        out = out.reshape(values.shape)
+    else:
+        out = aligned_empty(values.shape, values.dtype)
     out[...] = values
     out.flags.writeable = False
     return out
