@@ -100,6 +100,37 @@ def test_the_pilot_passes_are_not_recorded(scene):
     assert 0 < len(jit_kernels(replayed)) < 2 * len(jit_kernels(one_pass))
 
 
+def test_a_replayed_pilot_pass_runs_one_kernel_over_the_film_the_render_itself(scene):
+    """The sampler's state after a pass is nothing the pilots read; left lane by lane, the
+    recording would compute it in a second kernel that traces every camera ray again."""
+    from mitsuba_shsampling.integrators.pilots import frozen_pilots
+
+    integrator = mi.load_dict({"type": "sh_direct", "strategy": "product"})
+    sensor = scene.sensors()[0]
+    env = integrator.prepare_scene(scene, sensor)
+    replay = frozen_pilots(lambda spp, seed: mi.SamplingIntegrator.render(integrator, scene, sensor, seed, spp),
+                           env, (scene, sensor, integrator))
+    pixels = int(dr.prod(sensor.film().crop_size()))
+    first = [np.array(replay(1, seed)) for seed in (1, 2)]  # (a film pass records twice)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        image = np.array(replay(1, 3))
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        replay.release()
+    over_the_film = [k for k in history if k["type"] == dr.KernelType.JIT and k["size"] >= pixels
+                     and k["operation_count"] > 100]
+    assert len(over_the_film) == 1
+    assert np.all(np.isfinite(image)) and not np.array_equal(image, first[1])  # a pass of its own seed
+    np.testing.assert_allclose(image, traced_pass(scene, integrator, sensor, 3), rtol=1e-5, atol=1e-6)
+
+
+def traced_pass(scene, integrator, sensor, seed):
+    return np.array(mi.SamplingIntegrator.render(integrator, scene, sensor, seed, 1))
+
+
 class _Holder:
     """Plain object out of the frozen pass's reach (held only inside a closure)."""
 
