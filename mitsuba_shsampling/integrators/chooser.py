@@ -817,7 +817,8 @@ class StrategyChooser:
         samples = self.mode == ESTIMATE and sample is not None and int(size[0]) * int(size[1]) > FILM_PILOT_PIXELS
         if samples:
             render = lambda spp, seed: camera_sample_pass(scene, sensor, sample, seed)  # noqa: E731
-        replay = frozen_pilots(render, env, (scene, sensor, integrator)) if self.mode == ESTIMATE else render
+        replay = frozen_pilots(render, env, (scene, sensor, integrator), film_passes=not samples) \
+            if self.mode == ESTIMATE else render
 
         def render_pass(spp: int, seed: int):
             image = replay(spp, seed)

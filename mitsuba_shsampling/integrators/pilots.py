@@ -326,7 +326,8 @@ def measure_pass_costs(env, candidates: dict, render_pass: Callable[[int], objec
                   pixel_variance=per_pixel)
 
 
-def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> Callable[[int, int], object]:
+def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple,
+                  film_passes: bool = True) -> Callable[[int, int], object]:
     """``render(spp, seed)`` recorded once with ``dr.freeze`` and replayed for every later
     seed and strategy table: pilot passes of one kernel pay its tracing once (a traced
     pass of the product kernel costs several times its execution at pilot size). The
@@ -340,8 +341,9 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
     A film pass leaves the sensor's sampler advanced lane by lane, and a recording computes
     what its inputs hold when it returns: that state, which nothing reads (every render seeds
     the sampler again), took a kernel of its own that traced every camera ray again (5-9 ms
-    of each 30-40 ms pilot pass at 480 x 360). Each pass therefore ends by seeding the
-    sampler for one lane (:func:`settled_samplers`)."""
+    of each 30-40 ms pilot pass at 480 x 360). Each such pass (``film_passes``) therefore ends
+    by seeding the sampler for one lane (:func:`settled_samplers`); camera-sample passes draw
+    from a fork and leave the sensor's sampler alone."""
     # The recording's closures form a reference cycle inside dr.freeze, which would keep
     # ``render`` (and through it the integrator, its state and the scene) alive until
     # Python's next collection: ``replay.release()`` drops both when the pilots are done.
@@ -349,7 +351,8 @@ def frozen_pilots(render: Callable[[int, int], object], env, objects: tuple) -> 
 
     def one_pass(seed, spp, objects, inputs, emitter_selection, draws_bsdf_alone):
         image = target[0](spp, seed)
-        settled_samplers(objects)
+        if film_passes:
+            settled_samplers(objects)
         return image
 
     frozen, failed = dr.freeze(one_pass), []
