@@ -1,26 +1,22 @@
-"""Ordinary 4 kB pages for the set-up's short-lived memory; huge pages for what the passes read.
+"""Ordinary 4 kB pages for the short-lived memory of a pyramid's build.
 
 Dr.Jit (every allocation over 2 MB) and numpy (every array of 4 MB or more) ask Linux for
 transparent huge pages (``madvise(MADV_HUGEPAGE)``). Where THP is set to ``madvise``
-(Debian's and Ubuntu's default) the first touch of each 2 MB page clears it whole, and on a
-virtual machine whose host takes free memory back (the development VM: Firecracker, free
-page reporting) a free 2 MB block is exactly what the host took, so each such page is
-faulted in again from the host as well. A new scene's set-up touches several times the
-memory it keeps, each of it once (the studio under a depth-11 map: ~450 MB; the pyramid
-keeps 39 MB): there those faults cost 0.7-1.3 s of system time, varying from run to run
-by as much (docs/MEASUREMENTS.md, "Set-up on ordinary pages").
+(Debian's and Ubuntu's default) the first touch of each 2 MB page clears it whole and may
+compact memory before it returns. The pyramid's level sums and level test touch ~9x the
+memory of what the pyramid keeps (a depth-11 map: ~400 MB against 39 MB), each of it
+once, and on the development VM those faults cost up to 1.4 s of system time in a new
+scene's set-up, varying from run to run by as much (docs/MEASUREMENTS.md, "Set-up on
+ordinary pages").
 
-- :func:`setup_memory` marks a new scene's host set-up (its state's build, its plan): inside, huge pages
-  are off for the process (:func:`ordinary_pages`: ``prctl(PR_SET_THP_DISABLE)``, read at
-  each page fault, and numpy's request), so the temporaries come in 4 kB pages from memory
-  the system had at hand. When the outermost block ends after such work, the memory the
-  work freed is handed back (:func:`release_freed_memory`): Dr.Jit and the C library give a
-  freed block to the next allocation of its size, and the passes' own arrays would otherwise
-  land on the set-up's small pages (with the whole set-up on 4 kB pages and nothing handed
-  back, the passes ran 1-3 % slower).
-- :func:`kept_copy` copies what the passes read for the whole render (a pyramid's levels
-  and leaf records, the cosine tables: random gathers, where the page size shows) into a
-  mapping of its own, with huge pages allowed for that copy even inside a block.
+:func:`ordinary_pages` turns huge pages off for the process while such work runs
+(``prctl(PR_SET_THP_DISABLE)``, read at each page fault) and numpy's request off too
+(``_set_madvise_hugepage``, where ``prctl`` cannot be called); the previous settings are
+put back when the outermost block ends. Only the pyramid's temporaries go there, and what
+it keeps is copied out (:func:`kept_copy`): with the whole set-up on 4 kB pages the passes
+ran 1-3 % slower, since Dr.Jit hands freed blocks to later allocations of the same size and
+the passes' own arrays landed on the set-up's small pages; the cosine tables' sums (16 MB
+blocks, the size of a pass's arrays) did the same (same section).
 """
 
 from __future__ import annotations
@@ -32,7 +28,6 @@ import mmap
 import sys
 import threading
 
-import drjit as dr
 import numpy as np
 
 from .device_arrays import aligned_empty
@@ -64,26 +59,11 @@ def _prctl():
     return prctl
 
 
-def _malloc_trim():
-    """glibc's ``malloc_trim``, None elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        trim = ctypes.CDLL(ctypes.util.find_library("c") or None).malloc_trim
-    except (OSError, AttributeError):  # (musl has none)
-        return None
-    trim.restype, trim.argtypes = ctypes.c_int, [ctypes.c_size_t]
-    return trim
-
-
 _NUMPY_SWITCH = _numpy_switch()
 _PRCTL = _prctl()
-_MALLOC_TRIM = _malloc_trim()
 _LOCK = threading.Lock()
 _DEPTH = 0
 _SAVED: tuple = (None, None)
-_OPEN = 0
-_WORK_DONE = False
 
 
 def process_thp_disabled() -> bool | None:
@@ -137,76 +117,24 @@ def ordinary_pages():
                 _put_back(_SAVED)
 
 
-@contextlib.contextmanager
-def setup_memory(work: bool = True):
-    """A new scene's host set-up work (``work``: its state's build, its plan), or a scope that
-    may contain some (``work=False``: an integrator's host step before a pass, which builds
-    or plans only where the scene is new). Work runs within :func:`ordinary_pages`; a scope
-    alone changes no page setting. When the outermost such block ends and some block inside
-    it did work, the memory that work freed is handed back (:func:`release_freed_memory`),
-    once; a scope without work hands nothing back (a pass's arrays stay with Dr.Jit for the
-    next pass). A rebuild after a parameter change (an optimisation step) is no such work:
-    it keeps huge pages, and hands nothing back, as every pass."""
-    global _OPEN, _WORK_DONE
-    with _LOCK:
-        _OPEN += 1
-    release = False
-    try:
-        with ordinary_pages() if work else contextlib.nullcontext():
-            yield
-    finally:
-        with _LOCK:
-            _OPEN -= 1
-            _WORK_DONE = _WORK_DONE or work
-            release = _OPEN == 0 and _WORK_DONE
-            if release:
-                _WORK_DONE = False
-        if release:
-            release_freed_memory()
-
-
-def release_freed_memory() -> None:
-    """Hand the memory freed so far back to the system: Dr.Jit's cache of freed blocks
-    (``flush_malloc_cache``), then the C library's (``malloc_trim``, where it is glibc's), so
-    that the next allocations get new memory (with huge pages, outside :func:`ordinary_pages`)."""
-    dr.flush_malloc_cache()
-    if _MALLOC_TRIM is not None:
-        _MALLOC_TRIM(0)
-
-
 def kept_copy(values: np.ndarray) -> np.ndarray:
     """A read-only copy of ``values`` in memory of its own, mapped for it and first touched
-    with the process's own huge-page settings (inside an :func:`ordinary_pages` block too),
-    with huge pages asked for as Dr.Jit and numpy
+    outside any :func:`ordinary_pages` block, with huge pages asked for as Dr.Jit and numpy
     ask for them (page-aligned, so :func:`~.device_arrays.device_array` maps it as it is).
 
     Why: Dr.Jit and the C library keep freed memory for their next allocations, so an
     array made after an :func:`ordinary_pages` block may be made in the block's 4 kB pages
     (a depth-11 pyramid's levels made by a kernel after the block: none of 86 sampled pages
-    huge; copied into numpy's new arrays: 0-32 of 86). A mapping of its own is new memory,
-    and inside a block huge pages are allowed while the copy first touches it.
+    huge; copied into numpy's new arrays: 0-32 of 86). A mapping of its own is new memory.
     Where ``mmap`` has no private anonymous mappings (Windows), an aligned numpy copy."""
     if hasattr(mmap, "MAP_PRIVATE"):
         out = np.frombuffer(_new_mapping(max(values.nbytes, 1)), dtype=values.dtype, count=values.size)
         out = out.reshape(values.shape)
     else:
         out = aligned_empty(values.shape, values.dtype)
-    with _LOCK:
-        inside = _DEPTH > 0
-        if inside:
-            _put_back(_SAVED)  # the user's settings, for this copy's first touch
-        try:
-            _fill(out, values)
-        finally:
-            if inside:
-                _turn_off()  # (what it returns is the user's settings again: _SAVED keeps them)
+    out[...] = values
     out.flags.writeable = False
     return out
-
-
-def _fill(out: np.ndarray, values: np.ndarray) -> None:
-    """The copy that first touches a kept copy's memory."""
-    out[...] = values
 
 
 def _new_mapping(size: int) -> mmap.mmap:

@@ -1,12 +1,10 @@
 """Specification of the set-up's memory pages (``host_memory``).
 
-A state's build and a plan run on ordinary 4 kB pages, the process's huge-page settings are
-put back afterwards, the memory the set-up freed is handed back when it ends (and only
-then: a pass whose state is ready hands nothing back), and what the passes read for the
-whole render is copied into memory of its own, with huge pages allowed for that copy (so
-that neither Dr.Jit's nor the C library's reuse of freed memory puts it on the set-up's
-pages). Whether Linux then backs that memory with huge pages is the kernel's business and
-is not asserted here.
+The pyramid's short-lived sums are made on ordinary 4 kB pages, the
+process's huge-page settings are put back afterwards, and what the passes read for the
+whole render is copied into memory of its own (so that neither Dr.Jit's nor the C
+library's reuse of freed memory puts it on the sums' pages). Whether Linux then backs that
+memory with huge pages is the kernel's business and is not asserted here.
 """
 
 from __future__ import annotations
@@ -93,96 +91,3 @@ def test_a_pyramid_sums_on_ordinary_pages_and_keeps_its_levels_in_kept_copies(mo
         memory = array.numpy()
         assert memory.ctypes.data % mmap.PAGESIZE == 0, "the kept levels are read from a mapping of their own"
 
-
-
-@pytest.fixture
-def releases(monkeypatch):
-    """Counts the hand-backs of freed memory."""
-    count = []
-    monkeypatch.setattr(host_memory, "release_freed_memory", lambda: count.append(1))
-    return count
-
-
-@needs_prctl
-def test_set_up_work_runs_on_ordinary_pages_and_hands_its_memory_back_once_at_the_outermost_end(user_settings,
-                                                                                                 releases):
-    host_memory._put_back((False, True))
-    with host_memory.setup_memory(work=False):  # an integrator's step before a pass
-        assert settings() == (False, True), "a scope alone changes no page setting"
-        with host_memory.setup_memory():  # the state's build
-            assert settings() == (True, False)
-        with host_memory.setup_memory():  # the plan
-            pass
-        assert releases == [], "nothing is handed back before the outermost block ends"
-    assert releases == [1]
-    assert settings() == (False, True)
-    with host_memory.setup_memory():  # work outside any scope: handed back at its own end
-        pass
-    assert releases == [1, 1]
-
-
-def test_a_step_without_set_up_work_hands_nothing_back(releases):
-    with host_memory.setup_memory(work=False):
-        pass
-    assert releases == []
-
-
-def test_a_failing_set_up_still_hands_its_memory_back(releases):
-    with pytest.raises(RuntimeError):
-        with host_memory.setup_memory():
-            raise RuntimeError("a build that fails")
-    assert releases == [1]
-
-
-@needs_prctl
-def test_inside_a_block_a_kept_copy_first_touches_its_memory_with_the_users_settings(monkeypatch, user_settings):
-    host_memory._put_back((False, True))
-    during_copy = []
-    original = host_memory._fill
-
-    def spied(out, values):
-        during_copy.append(settings())
-        original(out, values)
-    monkeypatch.setattr(host_memory, "_fill", spied)
-    with host_memory.ordinary_pages():
-        kept = host_memory.kept_copy(np.arange(10.0))
-        assert settings() == (True, False), "the block's pages again after the copy"
-    assert during_copy == [(False, True)]
-    assert np.array_equal(kept, np.arange(10.0))
-
-
-def test_handing_freed_memory_back_leaves_live_arrays_as_they_were():
-    values = device_array(mi.Float, np.arange(1_000_000, dtype=np.float32))
-    host_memory.release_freed_memory()
-    assert np.array_equal(values.numpy(), np.arange(1_000_000, dtype=np.float32))
-
-
-def test_a_plan_runs_its_set_up_on_ordinary_pages_and_hands_its_memory_back_once(monkeypatch, releases, envmaps_dir):
-    from mitsuba_shsampling.integrators import chooser as chooser_module
-    from mitsuba_shsampling.integrators import sh_direct
-    from mitsuba_shsampling.scenes import builtin_scenes, load_scene
-
-    seen = []
-    for module, name in ((sh_direct, "ProductEnvironment"), (chooser_module.StrategyChooser, "_choose")):
-        original = getattr(module, name)
-
-        def spied(*args, _original=original, **kwargs):
-            seen.append(host_memory._DEPTH > 0)
-            return _original(*args, **kwargs)
-        monkeypatch.setattr(module, name, spied)
-    monkeypatch.setattr(build_cache, "_in_process_only", True)
-    scene = load_scene(builtin_scenes()["sphere_ggx010"], envmap=str(envmaps_dir / "forest_slope_1k.hdr"), res=16)
-    integrator = mi.load_dict({"type": "sh_direct"})
-    integrator.plan(scene)
-    assert seen == [True, True], "the state's build and the plan"
-    assert releases == [1]
-    mi.render(scene, integrator=integrator, spp=1)
-    assert releases == [1], "a pass on a ready state hands nothing back"
-    # A parameter change (an optimisation step): rebuilt and planned again on huge pages.
-    params = mi.traverse(scene)
-    key = next(k for k in params.keys() if k.endswith("alpha.value"))
-    params[key] = 0.3
-    params.update()
-    integrator.plan(scene)
-    assert seen == [True, True, False, False]
-    assert releases == [1]

@@ -43,7 +43,6 @@ through Mitsuba's logger (Info).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 import time
@@ -53,7 +52,6 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..host_memory import setup_memory
 from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
 from .pilots import (FILM_PILOT_PIXELS, LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
@@ -804,10 +802,7 @@ class StrategyChooser:
         if stored is not None:
             env.choice = stored_choice(env, stored, "file" if self.plan_file else "kept")
         else:
-            # A new scene's plan (its pilots) is set-up work; a re-plan after a parameter
-            # change (the pilots known) is not (host_memory).
-            with setup_memory() if self._scene is not scene else contextlib.nullcontext():
-                env.choice = self._choose(env, scene, sensor, render, integrator, sample)
+            env.choice = self._choose(env, scene, sensor, render, integrator, sample)
             if file:
                 plan_file.save(file, env.choice, key)
         env.choice.setup_seconds = env.build_seconds + time.perf_counter() - start

@@ -32,7 +32,6 @@ import mitsuba as mi
 import numpy as np
 
 from ..build_cache import kept_in_process
-from ..host_memory import setup_memory
 from ..envmap.emitter import EmitterDirections, compensated_copy
 from ..envmap.evaluated import EVALUATED_EMITTERS, is_evaluated, sky_components
 from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid, finest_level_kept
@@ -736,10 +735,8 @@ class SceneCache:
             # on 2 workers, 6 runs in 8 before this line, 0 in 11 after). A build is host work of
             # a second or more; a collection is milliseconds.
             gc.collect()
-            # A rebuild for changed parameters keeps its builds in the process (build_cache); a
-            # new scene's build is set-up work (host_memory).
-            rebuild = self._scene is scene
-            with kept_in_process() if rebuild else setup_memory():
+            # A rebuild for changed parameters: its builds stay in the process (build_cache).
+            with kept_in_process() if self._scene is scene else contextlib.nullcontext():
                 self._env = self._build(scene)
             self._scene = scene
             self._traversed = self._traverse(scene)

@@ -29,7 +29,6 @@ import drjit as dr
 import mitsuba as mi
 
 from ..frozen import held_inputs
-from ..host_memory import setup_memory
 
 from .chooser import StrategyChooser
 from .emitter_selection import DESIGNS
@@ -137,10 +136,7 @@ def prepared(integrator, scene: mi.Scene, sensor=0) -> None:
                 "collector during each call, or call gc.disable() around it")
         integrator.scenes.get(scene)  # the state made before, or FrozenBeforePlanError
         return
-    # Where the scene needs a build or a plan, its temporaries go on ordinary pages and are
-    # handed back when it ends (host_memory); a pass whose state is ready touches nothing.
-    with setup_memory(work=False):
-        state = integrator.prepare_scene(scene, sensor)
+    state = integrator.prepare_scene(scene, sensor)
     # Walked on every call, not once per state: a re-plan replaces arrays inside the same state
     # (the strategy table), and a recording must find the current ones.
     integrator.frozen_inputs = held_inputs(state) + [design_marker(state)]

@@ -40,7 +40,6 @@ import numpy as np
 
 from ..build_cache import cached_build, content_key
 from ..device_arrays import device_array
-from ..host_memory import kept_copy
 from ..envmap.pyramid import block_offset, sum_pyramid_blocks
 from ..grid import Cell, grid_coordinates
 from .env_leaves import finish_pdf, finish_sample
@@ -197,8 +196,7 @@ class CosineTable:
             blocks = cached_build("cosine_tables", content_key(cells, normals, float(defensive_share)), lambda: {
                 "blocks": sum_pyramid_blocks(mixture_tables(cells, normals, defensive_share, on_device=True),
                                                 TABLE_DEPTH, len(world)).numpy()})["blocks"]
-        # Gathered at random by every pass: in memory of its own, where huge pages are allowed.
-        self.buffer = device_array(mi.Float, kept_copy(np.asarray(blocks, dtype=np.float32)))
+        self.buffer = device_array(mi.Float, blocks)
         self.nbytes = 4 * dr.width(self.buffer)
         dr.eval(self.buffer)
 
