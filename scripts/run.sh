@@ -64,8 +64,13 @@ fi
 shift || true
 case "$cmd" in
     # Two pytest workers (pytest-xdist, one per core on the 2-core CI machine): the suite is
-    # mostly single-threaded tracing, so 861 tests take 269 s instead of 430 s there.
-    test)    exec "$VENV/bin/python" -m pytest -q -p no:cacheprovider -n "${SHSAMPLING_TEST_WORKERS:-auto}" "$@" tests ;;
+    # mostly single-threaded tracing, so 861 tests take 269 s instead of 430 s there. A file's
+    # tests go to one worker (--dist loadfile): several modules share a costly module-scoped
+    # fixture (a two-worker sweep, sh_prb's and the spectral scenes, a report), which a test-by-test
+    # spread made on both workers (about 85 s of work twice; xdist_group marks given as a
+    # module's pytestmark are not honoured by pytest-xdist 3.8).
+    test)    exec "$VENV/bin/python" -m pytest -q -p no:cacheprovider -n "${SHSAMPLING_TEST_WORKERS:-auto}" \
+                 --dist loadfile "$@" tests ;;
     compare) exec "$VENV/bin/python" -m mitsuba_shsampling compare "$@" ;;
     bench)   exec "$VENV/bin/python" -m mitsuba_shsampling bench "$@" ;;
     *) echo "usage: bash scripts/run.sh {test|compare|bench} [args...]" >&2; exit 2 ;;
