@@ -146,9 +146,11 @@ def content_key(*parts) -> str:
     return digest.hexdigest()
 
 
-def cached_build(kind: str, key: str, build: Callable[[], Record]) -> Record:
+def cached_build(kind: str, key: str, build: Callable[[], Record], on_disk: bool = True) -> Record:
     """``build()``'s record for ``key``, built only if neither this process nor the disk
-    cache has it. ``kind`` names the sort of build (its files' folder)."""
+    cache has it. ``kind`` names the sort of build (its files' folder). ``on_disk`` False:
+    kept in this process only, for a build that costs less than its file (writing it
+    competes with the set-up for the machine's cores)."""
     name = f"{kind}/{key}"
     with _memory_lock:
         record = _memory.get(name)
@@ -156,7 +158,7 @@ def cached_build(kind: str, key: str, build: Callable[[], Record]) -> Record:
             _memory.move_to_end(name)
             return record
     folder = cache_folder()
-    path = os.path.join(folder, kind, key + ".npz") if folder else None
+    path = os.path.join(folder, kind, key + ".npz") if folder and on_disk else None
     record = _read(path) if path else None
     if record is None:
         record = build()

@@ -1,7 +1,7 @@
 """Specification: the disk cache of builds is bounded. Folders of other package versions beyond
 the most recently used few are deleted (only folders named like a version), and this version's
-least recently used files go once it holds more than its bound; a build read back counts as used.
-The report's reference renders beside them are bounded the same way."""
+least recently used files go once it holds more than its bound; a build read back counts as used;
+a build that costs less than its file is kept in the process only. The report's reference renders beside them are bounded the same way."""
 
 import os
 import threading
@@ -56,6 +56,16 @@ def test_a_build_read_back_counts_as_used(tmp_path, monkeypatch):
     record = build_cache.cached_build("test", "key", lambda: {"values": np.zeros(3)})
     assert np.array_equal(record["values"], np.arange(3.0))  # read, not built
     assert os.path.getmtime(path) > time.time() - 60
+
+
+def test_a_build_kept_in_the_process_only_writes_no_file_and_is_found_in_the_process(tmp_path, monkeypatch):
+    monkeypatch.setenv(build_cache.ENVIRONMENT_VARIABLE, str(tmp_path))
+    build_cache.clear_in_process()
+    build_cache.cached_build("test", "cheap", lambda: {"values": np.arange(3.0)}, on_disk=False)
+    build_cache.flush()
+    assert not os.path.exists(os.path.join(build_cache.cache_folder(), "test", "cheap.npz"))
+    record = build_cache.cached_build("test", "cheap", lambda: {"values": np.zeros(3)}, on_disk=False)
+    assert np.array_equal(record["values"], np.arange(3.0))  # this process's build, not a new one
 
 
 def test_the_reports_references_are_bounded_too_each_npz_with_its_exr(tmp_path, monkeypatch):

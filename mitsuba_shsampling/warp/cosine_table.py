@@ -192,10 +192,12 @@ class CosineTable:
                                            TABLE_DEPTH, len(world)).numpy()
         else:
             cells = pyramid.level_numpy(min(TABLE_DEPTH + 1, pyramid.depth))
-            # The same map level, frame and share give the same tables (build_cache).
+            # The same map level, frame and share give the same tables (build_cache): in this
+            # process only. Built in kernels they cost 25-40 ms; their file, 21 MB, cost more to
+            # write than that, on a core the set-up needed.
             blocks = cached_build("cosine_tables", content_key(cells, normals, float(defensive_share)), lambda: {
                 "blocks": sum_pyramid_blocks(mixture_tables(cells, normals, defensive_share, on_device=True),
-                                                TABLE_DEPTH, len(world)).numpy()})["blocks"]
+                                                TABLE_DEPTH, len(world)).numpy()}, on_disk=False)["blocks"]
         self.buffer = device_array(mi.Float, blocks)
         self.nbytes = 4 * dr.width(self.buffer)
         dr.eval(self.buffer)
