@@ -684,6 +684,25 @@ def _flat_values(value) -> mi.Float | None:
     return None
 
 
+_cycle_collections = 0
+"""Python cycle collections run by :func:`collect_cycles` in this process."""
+
+
+def collect_cycles() -> None:
+    """Run Python's cycle collector (and count it: :func:`cycle_collections`). Objects of a
+    dropped scene that only the collector frees are still registered with Dr.Jit until it
+    runs, and its virtual calls would trace them."""
+    global _cycle_collections
+    gc.collect()
+    _cycle_collections += 1
+
+
+def cycle_collections() -> int:
+    """How many :func:`collect_cycles` have run in this process (a caller that needs a
+    collection since some point compares two counts; each costs ~20 ms)."""
+    return _cycle_collections
+
+
 class SceneCache:
     """Builds a per-scene state with ``build(scene)`` (:class:`ProductEnvironment`,
     the oracle's state), and again whenever the scene's inputs change.
@@ -734,7 +753,7 @@ class SceneCache:
             # aborted the process in LLVM ("invalid redefinition of function", tests/test_skies.py
             # on 2 workers, 6 runs in 8 before this line, 0 in 11 after). A build is host work of
             # a second or more; a collection is milliseconds.
-            gc.collect()
+            collect_cycles()
             # A rebuild for changed parameters: its builds stay in the process (build_cache).
             with kept_in_process() if self._scene is scene else contextlib.nullcontext():
                 self._env = self._build(scene)

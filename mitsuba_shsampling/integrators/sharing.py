@@ -32,7 +32,7 @@ from ..frozen import held_inputs
 
 from .chooser import StrategyChooser
 from .emitter_selection import DESIGNS
-from .environment import SceneCache
+from .environment import SceneCache, collect_cycles, cycle_collections
 
 class SharedPlanning:
     """The per-scene caches and the planner of one option set; every integrator object of
@@ -107,10 +107,12 @@ def plan(self, scene: mi.Scene, sensor=0):
     It also runs Python's cycle collector: a frozen function (``mitsuba_shsampling.freeze``)
     pauses it, and while it records, the objects of a dropped scene that only the collector
     frees would still be registered with Dr.Jit, whose virtual calls would then find
-    instances that are no inputs of the recording."""
+    instances that are no inputs of the recording. (Not twice: a state built in this call
+    ran it before its build.)"""
+    collected = cycle_collections()
     prepared(self, scene, sensor)
-    if not dr.flag(dr.JitFlag.FreezingScope):
-        gc.collect()
+    if not dr.flag(dr.JitFlag.FreezingScope) and cycle_collections() == collected:
+        collect_cycles()
     return self.choice(scene)
 
 
