@@ -12,11 +12,16 @@ pass time over its fastest's; ``--json`` writes the same.
 
     python scripts/ab_interleaved.py SCENE.xml --envmap MAP --res 192 --spp 4 --passes 16 \\
         '{"type": "direct"}' '{"type": "sh_direct"}' '{"type": "sh_direct", "strategy": "product_only"}'
+
+A ``path_settings`` entry sets fields of a path plugin's loop settings that are no plugin
+parameter (``integrators/path_loop.py``: ``PathSettings``), e.g.
+``'{"type": "sh_path", "path_settings": {"through_dirac": false}}'``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -28,6 +33,16 @@ import mitsuba as mi
 from mitsuba_shsampling.frozen import FrozenPass
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+def load_integrator(description: dict):
+    """``mi.load_dict(description)``, its ``path_settings`` (if any) set on the loop settings."""
+    description = dict(description)
+    settings = description.pop("path_settings", None)
+    integrator = mi.load_dict(description)
+    if settings:
+        integrator.settings = dataclasses.replace(integrator.settings, **settings)
+    return integrator
 
 
 def main() -> None:
@@ -57,7 +72,7 @@ def main() -> None:
     # Each integrator is loaded --instances times: one instance of a configuration can run
     # ~10 % slower than another for a whole run (docs/MEASUREMENTS.md, "Timing: each
     # integrator instance has its own speed"); round k uses instance k mod K of every one.
-    integrators = {text: [mi.load_dict(json.loads(text)) for _ in range(args.instances)]
+    integrators = {text: [load_integrator(json.loads(text)) for _ in range(args.instances)]
                    for text in args.integrators}
     for instances in integrators.values():  # compile outside the timed passes
         for integrator in instances:

@@ -11,6 +11,7 @@ into the package's scene folder, so an installed package carries it:
 - ``material_studio.xml``: ten materials on a textured ground (GGX conductors at alpha
   0.05-0.3, an anisotropic two-sided conductor, rough plastic, principled with a
   textured roughness, a textured diffuse, a smooth dielectric block, a bump-mapped plastic);
+- ``mirror_studio.xml``: the same with a mirror panel behind it (glossy surfaces seen in a mirror);
 - ``interior.xml``: an open room lit through a window and its open front, with
   furnishings, so that most shading points see a partly occluded environment.
 
@@ -347,6 +348,20 @@ def material_studio() -> str:
     return body + "</scene>\n"
 
 
+def mirror_studio() -> str:
+    """The material studio with a mirror panel behind its objects (a smooth conductor, 8 x 3 m):
+    two fifths of the view show the objects' far sides reflected, paths whose first rough vertex
+    is the second."""
+    title = "Material studio: ten materials on a tiled ground, a 115k-triangle torus knot."
+    body = material_studio().replace(title, "Mirror studio: the material studio with a mirror panel behind it.")
+    body = body.replace("</scene>\n", "")
+    body += rectangle("mirror_panel", """
+            <scale x="4" y="1.5" z="1"/>
+            <translate x="0" y="1.5" z="-3.5"/>
+        """, """<bsdf type="conductor"/>""")
+    return body + "</scene>\n"
+
+
 def interior() -> str:
     body = HEADER.format(title="Interior: an open room lit through a window in its left wall and its open front.",
                          fov=60, origin="0.6, 1.55, 2.6", target="-0.6, 0.9, -1.5")
@@ -431,10 +446,11 @@ def main() -> None:
              0.05 + 0.5 * value_noise(rng, 512, (4, 8, 16)), srgb=False)
     save_png(os.path.join(args.out, "textures", "bump_noise.png"), value_noise(rng, 512, (16, 32, 64)), srgb=False)
 
-    for name, text in (("material_studio", material_studio()), ("interior", interior())):
+    for name, text in (("material_studio", material_studio()), ("mirror_studio", mirror_studio()),
+                       ("interior", interior())):
         with open(os.path.join(args.out, f"{name}.xml"), "w") as f:
             f.write(text)
-    print(f"wrote meshes, textures, material_studio.xml and interior.xml to {os.path.abspath(args.out)}")
+    print(f"wrote meshes, textures, material_studio.xml, mirror_studio.xml and interior.xml to {os.path.abspath(args.out)}")
 
 
 if __name__ == "__main__":

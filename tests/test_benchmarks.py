@@ -1,6 +1,7 @@
 """Specification: the benchmarks are importable functions of the package, the
 ``scripts/bench_*.py`` files only call them, and ``bench`` runs them in-process."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -15,6 +16,7 @@ mi.set_variant("llvm_ad_rgb")
 
 from mitsuba_shsampling import benchmarks  # noqa: E402
 from mitsuba_shsampling.benchmarks import env_pyramid  # noqa: E402
+from mitsuba_shsampling.integrators import register  # noqa: E402
 from mitsuba_shsampling.report.bench import run_benchmark  # noqa: E402
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -120,6 +122,19 @@ def test_the_interleaved_ab_script_reports_variance_time_and_efficiency_against_
     assert second["efficiency_ratio"] == pytest.approx(1.0 / (second["variance_ratio"] * second["time_ratio"]))
     # BSDF sampling alone rarely finds the map's sun: far noisier than 1 + 1 MIS.
     assert second["pixel_variance"] > first["pixel_variance"]
+
+
+def test_the_ab_script_sets_a_path_loops_settings_that_no_plugin_parameter_sets():
+    sys.path.insert(0, os.path.join(REPO, "scripts"))
+    try:
+        import ab_interleaved
+    finally:
+        sys.path.pop(0)
+    register()
+    strict = ab_interleaved.load_integrator({"type": "sh_path", "path_settings": {"through_dirac": False}})
+    default = ab_interleaved.load_integrator({"type": "sh_path"})
+    assert strict.settings.through_dirac is False and default.settings.through_dirac is True
+    assert dataclasses.replace(strict.settings, through_dirac=True) == default.settings
 
 
 def test_the_product_benchmark_times_the_warp_with_its_lobes_from_memory_and_built_in_the_kernel(tmp_path):

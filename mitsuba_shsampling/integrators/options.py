@@ -351,7 +351,10 @@ class PathOptions(ProductOptions):
         "(MIS-compensated). Deeper vertices carry less of the image and their packets mix "
         "materials, so the product's walks cost them as much for less: on the interior under "
         "forest_slope the product at every vertex gave 1.53x ``path``'s efficiency, at the "
-        "first hits only 1.64x (docs/MEASUREMENTS.md, \"The product at a path's first hits\")."))
+        "first hits only 1.64x (docs/MEASUREMENTS.md, \"The product at a path's first hits\"). "
+        "A Dirac bounce (a mirror, glass) is not counted: what the camera sees in a mirror or "
+        "through a window is a first hit too (the studio with a mirror panel under "
+        "forest_slope: 1.12x the efficiency of counting it)."))
 
     @property
     def depth_limit(self) -> int:

@@ -48,7 +48,7 @@ class OraclePathIntegrator(mi.SamplingIntegrator):
         self.options = options = OraclePathOptions.from_properties(props)
         vertex = options.oracle_vertex
         self.settings = PathSettings(max_depth=options.max_depth, rr_depth=options.rr_depth,
-                                     product_depth=vertex, product_from=max(vertex - 1, 0),
+                                     product_depth=vertex, product_from=max(vertex - 1, 0), through_dirac=False,
                                      hide_emitters=options.hide_emitters, label="oracle_path")
         self.scenes = SceneCache(lambda scene: OracleAtVertex(scene, options))
 

@@ -13,7 +13,8 @@ differentiated. Per vertex:
   emitter sampling for the others);
 - next-event estimation: one sample of the material's environment strategy
   (:func:`~.estimators.product_nee`; the product only at the first
-  ``product_depth`` vertices) and one of Mitsuba's emitter sampling for the other emitters;
+  ``product_depth`` vertices, a mirror's or a window's Dirac bounce not counted) and one of
+  Mitsuba's emitter sampling for the other emitters;
 - one BSDF sample that continues the path, and Russian roulette as Mitsuba's ``path``.
 
 Random numbers are drawn as Mitsuba's ``path`` and ``prb`` draw them: in every lane still
@@ -43,7 +44,8 @@ class PathSettings:
     rr_depth: int
     """Depth from which Russian roulette runs."""
     product_depth: int
-    """Vertices (from the first) whose environment sample may use the product."""
+    """Vertices (from the first) whose environment sample may use the product, counted as
+    :attr:`through_dirac` says."""
     hide_emitters: bool
     """Emitters seen directly by the camera are not rendered."""
     label: str
@@ -51,6 +53,11 @@ class PathSettings:
     product_from: int = 0
     """Vertices before this one (counted from 0, the first hit) never use the product
     (``oracle_path``: its oracle at one vertex only)."""
+    through_dirac: bool = True
+    """A Dirac bounce (a mirror, glass) does not count towards :attr:`product_depth`: what the
+    camera sees in a mirror or through a window is a first hit too, as coherent as the
+    others and as bright. False: every vertex counts (``oracle_path``, which places its
+    oracle at one vertex)."""
 
 
 # Equal fractions: one environment sample and one BSDF sample per vertex (the power
@@ -139,7 +146,7 @@ def trace_paths(mode: dr.ADMode, scene: mi.Scene, env, sampler: mi.Sampler, ray:
     ctx = mi.BSDFContext()
     # Plain locals: inside the loop, dr.syntax would take an attribute read for loop state.
     max_depth, rr_depth, product_depth = settings.max_depth, settings.rr_depth, settings.product_depth
-    product_from = settings.product_from
+    product_from, through_dirac = settings.product_from, settings.through_dirac
     hide_emitters, label = settings.hide_emitters, f"{settings.label} ({mode.name})"
     occlusion_ends_paths = not has_emitting_shapes(scene)
 
@@ -150,6 +157,9 @@ def trace_paths(mode: dr.ADMode, scene: mi.Scene, env, sampler: mi.Sampler, ray:
     L = mi.Spectrum(0.0 if primal else state_in)
     δL = mi.Spectrum(δL if δL is not None else 0.0)
     β, η, depth = mi.Spectrum(1.0), mi.Float(1.0), mi.UInt32(0)
+    # The vertex's place as product_depth counts it: its depth, less the Dirac bounces
+    # before it where they do not count.
+    counted = mi.UInt32(0)
     valid_ray = mi.Bool(not hide_emitters and scene.environment() is not None)
     prev = first_vertex()
     # Camera rays are intersected coherently, as Mitsuba's path traces them.
@@ -165,7 +175,7 @@ def trace_paths(mode: dr.ADMode, scene: mi.Scene, env, sampler: mi.Sampler, ray:
 
         # Next-event estimation; the product only at the first product_depth vertices.
         smooth = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        product_lanes = smooth & (depth < product_depth)
+        product_lanes = smooth & (counted < product_depth)
         if dr.hint(product_from > 0, mode="scalar"):  # (no comparison traced where it is 0)
             product_lanes &= depth >= product_from
         lobe, use_product = env.lobe(si, product_lanes)
@@ -194,6 +204,7 @@ def trace_paths(mode: dr.ADMode, scene: mi.Scene, env, sampler: mi.Sampler, ray:
         β, survives = russian_roulette(sampler, β, η, depth, rr_depth, active)
         active = active_next & survives & (bs.pdf > 0)
         depth += 1
+        counted += dr.select(delta, mi.UInt32(0), mi.UInt32(1)) if through_dirac else mi.UInt32(1)
         hit, active = next_hit(scene, ray, active, depth + 1 >= max_depth, occlusion_ends_paths)
         prev = PreviousVertex(mi.Interaction3f(si), bs.pdf, delta,
                               env.pdf(lobe, use_product, d, active & smooth & ~delta & ~hit.is_valid()))

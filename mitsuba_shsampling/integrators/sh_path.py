@@ -31,8 +31,9 @@ class SHPathIntegrator(mi.SamplingIntegrator):
     the environment's luminance, or from the environment alone; with ``auto``
     each material gets the one predicted to give the least error at equal time,
     chosen before the first pass at the camera's first hits. The product runs at
-    the first ``product_depth`` vertices of a path (the first hits, by default);
-    deeper vertices sample the environment alone. It is combined with
+    the first ``product_depth`` vertices of a path (the first hits, by default,
+    those seen in a mirror or through glass included: a Dirac bounce is not
+    counted); deeper vertices sample the environment alone. It is combined with
     BSDF sampling by the power heuristic; the product pdf of each BSDF-sampled
     direction is evaluated at the vertex that sampled it and carried to the
     next one (one float of loop state). Other emitters keep Mitsuba's emitter
