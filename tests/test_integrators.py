@@ -223,22 +223,27 @@ def test_product_depth_counts_vertices_from_the_camera_s_first_hit():
     assert not np.array_equal(render(4, 1), render(4, -1))
 
 
-def test_what_the_camera_sees_in_a_mirror_is_a_first_hit_for_the_product():
-    """product_depth 1 counts no Dirac bounce: a glossy ball seen in a mirror (a vertex at
-    depth 1 behind a smooth conductor) is product-sampled as it would be in full view. At
-    every vertex counted, the product and environment strategies gave the same image here."""
-    scene = mi.load_dict({
+def mirror_scene():
+    """A glossy ball seen only in a mirror: the mirror fills the view and turns it towards -x,
+    where the ball fills it."""
+    return mi.load_dict({
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 20,
                    "to_world": mi.ScalarTransform4f().look_at(origin=[0, -4, 0], target=[0, 0, 0], up=[0, 0, 1]),
                    "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"}},
                    "sampler": {"type": "independent"}},
-        # The mirror fills the view and turns it towards -x, where the ball fills it.
         "mirror": {"type": "rectangle", "bsdf": {"type": "conductor"},
                    "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[-1, -1, 0], up=[0, 0, 1])
                    .scale(1.5)},
         "ball": {"type": "sphere", "center": [-3.0, 0, 0], "radius": 1.5, "bsdf": MATERIALS["ggx"]},
         "env": sun_environment(False)})
+
+
+def test_what_the_camera_sees_in_a_mirror_is_a_first_hit_for_the_product():
+    """product_depth 1 counts no Dirac bounce: a glossy ball seen in a mirror (a vertex at
+    depth 1 behind a smooth conductor) is product-sampled as it would be in full view. At
+    every vertex counted, the product and environment strategies gave the same image here."""
+    scene = mirror_scene()
 
     def passes(strategy):
         integrator = mi.load_dict({"type": "sh_path", "max_depth": 3, "max_bands": BANDS, "strategy": strategy})
@@ -250,6 +255,29 @@ def test_what_the_camera_sees_in_a_mirror_is_a_first_hit_for_the_product():
     assert abs(means[0].mean() - means[1].mean()) < 5 * standard_error  # both unbiased
     variance_ratio = product.var(axis=0, ddof=1).mean() / environment.var(axis=0, ddof=1).mean()
     assert variance_ratio < 0.85  # 0.71 measured; 1.0 (the same image) when the mirror's bounce counted
+
+
+def test_the_path_plugins_plan_what_the_camera_sees_in_a_mirror_as_a_first_hit():
+    """Their quadrature follows Dirac bounces to the first rough hit, where they product-sample:
+    the ball seen only in a mirror is most of the film for sh_path's plan, and none of it for
+    sh_direct's (which shades first hits alone: the mirror shows the sky there)."""
+    from mitsuba_shsampling.integrators.quadrature import camera_frames_at, grid_positions
+    scene = mirror_scene()
+    x, y = grid_positions(scene.sensors()[0], 256)
+    first_hits = camera_frames_at(scene, scene.sensors()[0], x, y)
+    behind = camera_frames_at(scene, scene.sensors()[0], x, y, dirac_bounces=3)
+    assert len(first_hits.kept) == 0 and len(behind.kept) > 0.9 * len(x)
+    assert np.allclose(behind.weight, 1.0)  # Mitsuba's default conductor reflects all
+
+    def ball(plugin, **params):
+        choice = mi.load_dict({"type": plugin, "max_bands": BANDS, **params}).plan(scene)
+        return next(m for m in choice.materials if m.name == "ball")
+
+    seen = ball("sh_path", max_depth=4)
+    assert seen.share > 0.9 and seen.strategy.uses_product  # a GGX ball under a sun
+    assert ball("sh_direct").share == 0.0
+    # With max_depth 2 the vertex behind the mirror samples no emitter: nothing to plan there.
+    assert ball("sh_path", max_depth=2).share == 0.0
 
 
 @pytest.mark.parametrize("area_light", [True, False])

@@ -139,7 +139,7 @@ def ball_variances(scene, env, ball, points_per_side: int) -> np.ndarray:
     pixel = np.arange(BALL_FILM * BALL_FILM)
     x = ((pixel % BALL_FILM)[:, None, None] + k[None, :, None] + 0 * k[None, None, :]) / BALL_FILM
     y = ((pixel // BALL_FILM)[:, None, None] + 0 * k[None, :, None] + k[None, None, :]) / BALL_FILM
-    si, bsdf, kept = camera_frames_at(scene, scene.sensors()[0], x.ravel(), y.ravel())
+    si, bsdf, kept, _ = camera_frames_at(scene, scene.sensors()[0], x.ravel(), y.ravel())
     rows = frame_variances(env, si, bsdf, 1, 1, seed=9)
     rows[np.asarray(dr.reinterpret_array(mi.UInt32, bsdf).numpy()) != ball] = 0.0
     per_point = np.zeros((x.size, rows.shape[1]))

@@ -374,6 +374,9 @@ class FrameRows:
     grid_rows: int
     """How many of the points (the first ones) are the grid's; the rest were drawn where the
     pilots' pixels are noisiest (:func:`with_pilot_frames`)."""
+    throughput: np.ndarray
+    """Each point's weight on the film beside its film position's: the square of the Dirac
+    bounces' throughput before it (:class:`~.quadrature.CameraFrames`; 1 at a first hit)."""
 
 
 def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predictions:
@@ -382,7 +385,7 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
     which cosine lobes sample from their tables and which materials' ``product_only`` gives
     the BSDF its share (``env`` is set so)."""
     x, y = grid_positions(sensor)
-    si, bsdf, kept = camera_frames_at(env.scene, sensor, x, y)
+    si, bsdf, kept, throughput = camera_frames_at(env.scene, sensor, x, y, env.frame_dirac_bounces)
     variances = frame_variances(env, si, bsdf, n_e, n_b)
     keys = frame_keys(si, bsdf)
     cosine_frames = np.flatnonzero(np.isin(keys, list(env.lobes.cosine_ids))) if env.cosine_tables else []
@@ -398,8 +401,8 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
         finally:
             env.lobes.sample_from_tables(tabled)
         variances = choose_cosine_sampling(env, variances, walked, keys)
-    rows = FrameRows(variances, keys, x[kept], y[kept], len(x), len(keys))
-    p = summed_predictions(env, rows, np.full(len(keys), 1.0 / len(x)), forced, None)
+    rows = FrameRows(variances, keys, x[kept], y[kept], len(x), len(keys), throughput)
+    p = summed_predictions(env, rows, throughput / len(x), forced, None)
     env.share_bsdf(p.bsdf_shared)
     return p
 
@@ -451,13 +454,13 @@ def with_pilot_frames(env, sensor: mi.Sensor, p: Predictions, pilots: Pilots, n_
     if density is None or p.rows is None:
         return p
     x, y = density.positions(PILOT_FRAMES)
-    si, bsdf, kept = camera_frames_at(env.scene, sensor, x, y)
+    si, bsdf, kept, throughput = camera_frames_at(env.scene, sensor, x, y, env.frame_dirac_bounces)
     extra = frame_variances(env, si, bsdf, n_e, n_b, seed=PILOT_FRAMES_SEED)
     grid = p.rows
     rows = FrameRows(np.concatenate([grid.variances, extra]), np.concatenate([grid.keys, frame_keys(si, bsdf)]),
                      np.concatenate([grid.x, x[kept]]), np.concatenate([grid.y, y[kept]]), grid.grid_positions,
-                     grid.grid_rows)
-    weights = density.frame_weights(rows.x, rows.y, grid.grid_positions, len(x))
+                     grid.grid_rows, np.concatenate([grid.throughput, throughput]))
+    weights = density.frame_weights(rows.x, rows.y, grid.grid_positions, len(x)) * rows.throughput
     summed = summed_predictions(env, rows, weights, forced, p.bsdf_shared)
     return dataclasses.replace(summed, rest=rounded(summed.rest, FRAME_FIGURE_DIGITS), variance={
         k: {s: rounded(v, FRAME_FIGURE_DIGITS) for s, v in row.items()} for k, row in summed.variance.items()})
@@ -559,8 +562,8 @@ def measured_by_material(env, sensor: mi.Sensor, pilots: Pilots, candidates: dic
     if environment is None:
         return {}
     lanes = dr.width(pilots.pixel_variance[environment])
-    by_material = material_differences(pilots, lane_materials(env.scene, sensor, lanes), candidates, p.variance,
-                                       environment)
+    by_material = material_differences(pilots, lane_materials(env.scene, sensor, lanes, env.frame_dirac_bounces),
+                                       candidates, p.variance, environment)
     return {k: {s: dataclasses.replace(m, difference=rounded(m.difference), error=rounded(m.error),
                                        environment=rounded(m.environment)) for s, m in row.items()}
             for k, row in by_material.items()}

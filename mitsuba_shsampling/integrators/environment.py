@@ -41,8 +41,23 @@ from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
 from ..warp.sky_mixture import SkyMixture
-from .options import DEFAULT_BSDF_DEFENSIVE_SHARE, OptionError, ProductOptions
+from .options import DEFAULT_BSDF_DEFENSIVE_SHARE, OptionError, PathOptions, ProductOptions
 from .strategy import AUTO, MaterialFlags, Strategy, StrategyTable, strategy_named
+
+
+FRAME_DIRAC_BOUNCES = 3
+"""Dirac bounces (mirrors, glass) a camera ray of a path plugin's quadrature follows to the
+first rough hit at most: a glass block's two faces and a mirror beyond them."""
+
+
+def frame_dirac_bounces(options) -> int:
+    """:attr:`ProductEnvironment.frame_dirac_bounces` for a plugin's options: none for
+    ``sh_direct`` (it shades the first hit alone); for the path plugins
+    :data:`FRAME_DIRAC_BOUNCES`, fewer where ``max_depth`` leaves a vertex behind that
+    many no emitter sample (vertex k samples emitters while k + 1 < max_depth)."""
+    if not isinstance(options, PathOptions):
+        return 0
+    return int(max(0, min(FRAME_DIRAC_BOUNCES, options.depth_limit - 2)))
 
 
 def emitter_id(emitter: mi.Emitter | None) -> mi.UInt32 | None:
@@ -220,6 +235,10 @@ class ProductEnvironment(EnvironmentState):
         #: Some material has a Dirac component (which only a BSDF sample reaches).
         self.has_dirac_materials = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Delta) for m in self._materials.values())
         self.carry_all = carry_all
+        #: Dirac bounces the plan's quadrature follows from the camera to the first rough hit: a
+        #: path integrator product-samples what is seen in a mirror or through glass as a first
+        #: hit (``path_loop``), where a vertex after them still samples emitters.
+        self.frame_dirac_bounces = frame_dirac_bounces(options)
         #: ``product_only``'s BSDF share (``sh_direct``'s ``bsdf_defensive_share``, else its default).
         self.bsdf_share = getattr(options, "bsdf_defensive_share", DEFAULT_BSDF_DEFENSIVE_SHARE) if carry_all else 0.0
         #: Trace the cosine tables' and the SH walk's code whatever the materials run, and bsdf_only's draw

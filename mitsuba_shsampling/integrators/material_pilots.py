@@ -29,6 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from .pilots import Pilots, pilot_pixels
+from .quadrature import rough_hits
 from .strategy import Strategy
 
 MATERIAL_PRIOR_SD = 0.06
@@ -80,17 +81,18 @@ def quadrature_row(variances: dict) -> tuple:
     return tuple(sorted((s.label, float(v)) for s, v in variances.items()))
 
 
-def lane_materials(scene: mi.Scene, sensor: mi.Sensor, lanes: int) -> np.ndarray:
+def lane_materials(scene: mi.Scene, sensor: mi.Sensor, lanes: int, dirac_bounces: int = 0) -> np.ndarray:
     """The registry id of the BSDF that a ray through the centre of each pilot lane's pixel
-    (:func:`~.pilots.pilot_pixels`) hits first; :data:`NO_MATERIAL` where it hits nothing."""
+    (:func:`~.pilots.pilot_pixels`) hits first, or first behind up to ``dirac_bounces`` Dirac
+    bounces, as the quadrature's frames (:func:`~.quadrature.rough_hits`); :data:`NO_MATERIAL`
+    where it hits nothing."""
     size = sensor.film().crop_size()
     width = int(size[0])
     pixel = pilot_pixels(sensor, lanes)
     # As the pilots place their samples: relative to the crop window.
     position = (mi.Vector2f(mi.Float(pixel % width), mi.Float(pixel // width)) + 0.5) / mi.ScalarVector2f(size)
-    ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
-    si = scene.ray_intersect(ray)
-    ids = dr.select(si.is_valid(), dr.reinterpret_array(mi.UInt32, si.bsdf(ray)), NO_MATERIAL)
+    si, bsdf, _ = rough_hits(scene, sensor, mi.Point2f(position), dirac_bounces)
+    ids = dr.select(si.is_valid(), dr.reinterpret_array(mi.UInt32, bsdf), NO_MATERIAL)
     return np.broadcast_to(np.asarray(ids.numpy(), dtype=np.uint32), (lanes,))
 
 

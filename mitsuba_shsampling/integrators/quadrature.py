@@ -13,6 +13,7 @@ in every process.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import drjit as dr
 import mitsuba as mi
@@ -50,22 +51,69 @@ def grid_positions(sensor: mi.Sensor, count: int = FRAMES) -> tuple[np.ndarray, 
     return ix.ravel(), iy.ravel()
 
 
-def camera_frames_at(scene: mi.Scene, sensor: mi.Sensor, x: np.ndarray, y: np.ndarray):
-    """The camera's first hits at film positions ``(x, y)``: ``(si, bsdf, kept)`` with only
-    the hits on smooth BSDFs kept, ``kept`` the indices of their positions."""
-    position = mi.Point2f(device_array(mi.Float, np.asarray(x, dtype=np.float32)),
-                          device_array(mi.Float, np.asarray(y, dtype=np.float32)))
+FRAME_SEED = 0x5EED0001
+"""Seed of the random numbers that pick a Dirac BSDF's lobe (reflection or refraction) per frame."""
+
+
+class CameraFrames(NamedTuple):
+    """The shading points of :func:`camera_frames_at`."""
+
+    si: mi.SurfaceInteraction3f
+    bsdf: mi.BSDFPtr
+    kept: np.ndarray
+    """Indices of the film positions whose point was kept (a smooth BSDF)."""
+    weight: np.ndarray
+    """Per kept point, what one unit of variance there is on the film: the square of the Dirac
+    bounces' throughput before it (the mean over the colour channels), 1 at a first hit."""
+
+
+def rough_hits(scene: mi.Scene, sensor: mi.Sensor, position: mi.Point2f, dirac_bounces: int = 0):
+    """``(si, bsdf, throughput)`` of the rays through film positions ``position`` ([0, 1]^2 over
+    the crop): their first hit, or with ``dirac_bounces`` the first hit that is not on a Dirac-only
+    BSDF (a mirror, glass) behind up to that many such bounces, each drawn by the BSDF's own
+    sampling (fixed random numbers: :data:`FRAME_SEED`), and the bounces' throughput (1 at a
+    first hit). Lazy: the caller evaluates what it needs in one kernel."""
     ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
     si = scene.ray_intersect(ray)
     bsdf = si.bsdf(ray)
+    throughput = mi.Spectrum(1.0)
+    if dirac_bounces:
+        ctx, lanes = mi.BSDFContext(), dr.width(position)
+        rng = mi.PCG32(lanes, dr.opaque(mi.UInt64, FRAME_SEED))
+        for _ in range(dirac_bounces):
+            dirac = si.is_valid() & ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            bs, value = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
+                                    dirac)
+            onwards = dirac & (bs.pdf > 0) & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            ray = dr.select(onwards, si.spawn_ray(si.to_world(bs.wo)), ray)
+            beyond = scene.ray_intersect(ray, onwards)
+            si = dr.select(onwards, beyond, si)
+            bsdf = dr.select(onwards, beyond.bsdf(ray), bsdf)
+            throughput = dr.select(onwards, throughput * mi.unpolarized_spectrum(value), throughput)
+    return si, bsdf, throughput
+
+
+def camera_frames_at(scene: mi.Scene, sensor: mi.Sensor, x: np.ndarray, y: np.ndarray,
+                     dirac_bounces: int = 0) -> CameraFrames:
+    """The shading points the camera sees at film positions ``(x, y)``, only those on smooth BSDFs
+    kept: the first hits, or with ``dirac_bounces`` the first rough hit behind up to that many
+    Dirac bounces (what a path integrator that does not count them product-samples as a first
+    hit: ``integrators/path_loop.py``), each bounce drawn by the BSDF's own sampling."""
+    position = mi.Point2f(device_array(mi.Float, np.asarray(x, dtype=np.float32)),
+                          device_array(mi.Float, np.asarray(y, dtype=np.float32)))
+    si, bsdf, throughput = rough_hits(scene, sensor, position, dirac_bounces)
     smooth = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+    weight = dr.mean(dr.square(throughput), axis=0) + dr.zeros(mi.Float, dr.width(position)) if dirac_bounces \
+        else None
     # One kernel for the whole interaction: a gather from unevaluated fields evaluates
     # each field alone, each in a kernel of its own that traces the rays again (some 30
     # kernels, 1.6 s of a cold plan's compiling on the material studio).
-    dr.eval(si, bsdf, smooth)
+    dr.eval(si, bsdf, smooth, *([weight] if weight is not None else []))
     kept = np.flatnonzero(np.broadcast_to(smooth.numpy(), (len(x),)))
     index = device_array(mi.UInt32, kept)
-    return dr.gather(mi.SurfaceInteraction3f, si, index), dr.gather(mi.BSDFPtr, bsdf, index), kept
+    weight = np.ones(len(kept)) if weight is None else np.asarray(weight.numpy(), dtype=np.float64)[kept]
+    return CameraFrames(dr.gather(mi.SurfaceInteraction3f, si, index), dr.gather(mi.BSDFPtr, bsdf, index), kept,
+                        weight)
 
 
 def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
@@ -73,8 +121,8 @@ def camera_frames(scene: mi.Scene, sensor: mi.Sensor, count: int = FRAMES):
     ``(si, bsdf, total)`` with only the hits on smooth BSDFs kept, and ``total`` the number of
     film positions traced."""
     x, y = grid_positions(sensor, count)
-    si, bsdf, _ = camera_frames_at(scene, sensor, x, y)
-    return si, bsdf, len(x)
+    frames = camera_frames_at(scene, sensor, x, y)
+    return frames.si, frames.bsdf, len(x)
 
 
 def frame_variances(env, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, n_e: int, n_b: int,
