@@ -210,7 +210,9 @@ class ProductEnvironment(EnvironmentState):
     ``choice`` (the chooser's :class:`~.chooser.StrategyChoice` once made),
     ``needs_emitter_sampling`` (bool: Mitsuba's emitter sampling has work to do:
     emitters besides the environment, or any emitter where this object is inactive; so
-    also whether Mitsuba's pdf of a hit emitter is needed), ``has_dirac_materials`` (bool).
+    also whether Mitsuba's pdf of a hit emitter is needed), ``has_dirac_materials`` (bool),
+    ``frame_dirac_bounces`` (the Dirac bounces the plan's frames follow from the camera:
+    :func:`frame_dirac_bounces`).
     """
 
     samples_evaluated_emitters = True
@@ -220,9 +222,9 @@ class ProductEnvironment(EnvironmentState):
         super().__init__(scene)
         self.scene = scene
         self.pyramid = self.lobes = self.warp = self.warp_plain = self.env_directions = self.env_plain = None
-        #: The evaluated environment's image and sun (:class:`~..envmap.evaluated.SkyComponents`; None: an ``envmap``).
-        self.sky = None
-        self.strategies = self.choice = None
+        #: The evaluated environment's image and sun (:class:`~..envmap.evaluated.SkyComponents`; None: an
+        #: ``envmap``); the strategy table and the plan.
+        self.sky = self.strategies = self.choice = None
         self.strategy_option = options.default_strategy
         #: The plugin's name, for messages; what a stored plan must match (:mod:`.plan_file`).
         self.plugin, self.options_key = options.PLUGIN, options.plan_key
@@ -235,9 +237,6 @@ class ProductEnvironment(EnvironmentState):
         #: Some material has a Dirac component (which only a BSDF sample reaches).
         self.has_dirac_materials = any(mi.has_flag(m.bsdf.flags(), mi.BSDFFlags.Delta) for m in self._materials.values())
         self.carry_all = carry_all
-        #: Dirac bounces the plan's quadrature follows from the camera to the first rough hit: a
-        #: path integrator product-samples what is seen in a mirror or through glass as a first
-        #: hit (``path_loop``), where a vertex after them still samples emitters.
         self.frame_dirac_bounces = frame_dirac_bounces(options)
         #: ``product_only``'s BSDF share (``sh_direct``'s ``bsdf_defensive_share``, else its default).
         self.bsdf_share = getattr(options, "bsdf_defensive_share", DEFAULT_BSDF_DEFENSIVE_SHARE) if carry_all else 0.0
@@ -293,8 +292,7 @@ class ProductEnvironment(EnvironmentState):
         self.forced = self._resolve_named(named)
         if forced is not None:  # no plan to make: the named materials get theirs now
             self.strategies.assign(self.forced)
-        self.active = True
-        self.reason = ""
+        self.active, self.reason = True, ""
         # Mitsuba's emitter sampling is only traced when some lane can use it: every
         # smooth lane samples the environment through this object.
         self.needs_emitter_sampling = self.has_other_emitters
