@@ -374,7 +374,7 @@ class FrameRows:
     grid_rows: int
     """How many of the points (the first ones) are the grid's; the rest were drawn where the
     pilots' pixels are noisiest (:func:`with_pilot_frames`)."""
-    throughput: np.ndarray
+    dirac_weight: np.ndarray
     """Each point's weight on the film beside its film position's: the square of the Dirac
     bounces' throughput before it (:class:`~.quadrature.CameraFrames`; 1 at a first hit)."""
 
@@ -385,7 +385,7 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
     which cosine lobes sample from their tables and which materials' ``product_only`` gives
     the BSDF its share (``env`` is set so)."""
     x, y = grid_positions(sensor)
-    si, bsdf, kept, throughput = camera_frames_at(env.scene, sensor, x, y, env.frame_dirac_bounces)
+    si, bsdf, kept, dirac_weight = camera_frames_at(env.scene, sensor, x, y, env.frame_dirac_bounces)
     variances = frame_variances(env, si, bsdf, n_e, n_b)
     keys = frame_keys(si, bsdf)
     cosine_frames = np.flatnonzero(np.isin(keys, list(env.lobes.cosine_ids))) if env.cosine_tables else []
@@ -401,8 +401,8 @@ def predict(env, sensor: mi.Sensor, n_e: int, n_b: int, forced: dict) -> Predict
         finally:
             env.lobes.sample_from_tables(tabled)
         variances = choose_cosine_sampling(env, variances, walked, keys)
-    rows = FrameRows(variances, keys, x[kept], y[kept], len(x), len(keys), throughput)
-    p = summed_predictions(env, rows, throughput / len(x), forced, None)
+    rows = FrameRows(variances, keys, x[kept], y[kept], len(x), len(keys), dirac_weight)
+    p = summed_predictions(env, rows, dirac_weight / len(x), forced, None)
     env.share_bsdf(p.bsdf_shared)
     return p
 
@@ -454,13 +454,13 @@ def with_pilot_frames(env, sensor: mi.Sensor, p: Predictions, pilots: Pilots, n_
     if density is None or p.rows is None:
         return p
     x, y = density.positions(PILOT_FRAMES)
-    si, bsdf, kept, throughput = camera_frames_at(env.scene, sensor, x, y, env.frame_dirac_bounces)
+    si, bsdf, kept, dirac_weight = camera_frames_at(env.scene, sensor, x, y, env.frame_dirac_bounces)
     extra = frame_variances(env, si, bsdf, n_e, n_b, seed=PILOT_FRAMES_SEED)
     grid = p.rows
     rows = FrameRows(np.concatenate([grid.variances, extra]), np.concatenate([grid.keys, frame_keys(si, bsdf)]),
                      np.concatenate([grid.x, x[kept]]), np.concatenate([grid.y, y[kept]]), grid.grid_positions,
-                     grid.grid_rows, np.concatenate([grid.throughput, throughput]))
-    weights = density.frame_weights(rows.x, rows.y, grid.grid_positions, len(x)) * rows.throughput
+                     grid.grid_rows, np.concatenate([grid.dirac_weight, dirac_weight]))
+    weights = density.frame_weights(rows.x, rows.y, grid.grid_positions, len(x)) * rows.dirac_weight
     summed = summed_predictions(env, rows, weights, forced, p.bsdf_shared)
     return dataclasses.replace(summed, rest=rounded(summed.rest, FRAME_FIGURE_DIGITS), variance={
         k: {s: rounded(v, FRAME_FIGURE_DIGITS) for s, v in row.items()} for k, row in summed.variance.items()})
