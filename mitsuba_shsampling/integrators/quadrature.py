@@ -2,7 +2,8 @@
 
 The chooser (:mod:`.chooser`) weighs these predictions against the strategies'
 costs. For every shading point the camera sees (:func:`camera_frames`, a
-stratified grid over the film) the second moment of each strategy's one-sample
+stratified grid over the film; for the path plugins the first rough hit behind
+mirrors and glass, :func:`rough_hits`) the second moment of each strategy's one-sample
 estimator is integrated over directions by importance-sampled quadrature
 (:func:`frame_variances`): the integrand is the BSDF value x radiance x
 *visibility* (a shadow ray per direction), so occluded skies and windows count
