@@ -267,7 +267,7 @@ def test_the_path_plugins_plan_what_the_camera_sees_in_a_mirror_as_a_first_hit()
     first_hits = camera_frames_at(scene, scene.sensors()[0], x, y)
     behind = camera_frames_at(scene, scene.sensors()[0], x, y, dirac_bounces=3)
     assert len(first_hits.kept) == 0 and len(behind.kept) > 0.9 * len(x)
-    assert np.allclose(behind.weight, 1.0)  # Mitsuba's default conductor reflects all
+    assert np.allclose(behind.dirac_weight, 1.0)  # Mitsuba's default conductor reflects all
 
     def ball(plugin, **params):
         choice = mi.load_dict({"type": plugin, "max_bands": BANDS, **params}).plan(scene)

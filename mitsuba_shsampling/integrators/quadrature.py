@@ -63,7 +63,7 @@ class CameraFrames(NamedTuple):
     bsdf: mi.BSDFPtr
     kept: np.ndarray
     """Indices of the film positions whose point was kept (a smooth BSDF)."""
-    weight: np.ndarray
+    dirac_weight: np.ndarray
     """Per kept point, what one unit of variance there is on the film: the square of the Dirac
     bounces' throughput before it (the mean over the colour channels), 1 at a first hit."""
 
