@@ -27,6 +27,14 @@ paid back at a given equal-time efficiency E (``--efficiency``): a method with
 set-up T and E times the other's efficiency gives the lower error from
 t = T E / (E - 1) of wall time on.
 
+Each record also gives what the first call compiled: Dr.Jit's kernels that were not in
+its cache (``kernels_compiled``), the seconds LLVM took on them (``llvm_s``) and the largest
+(operations, milliseconds). A warm process compiles none: the kernels are the same in every
+process. With ``--then-envmap FILE`` the states after the first render FILE instead of the
+scene's map: ``cold`` then ``new map`` is then a map the machine has not rendered, as a user's
+own map is (Mitsuba's envmap sampler, which the environment strategies run, is traced per
+resolution: a map of a new resolution compiles the plan's and the render's kernels again).
+
 With ``--renders-first N`` each child first renders the scene N times with Mitsuba's
 ``direct`` and N times with its ``path`` (untimed), as ``compare`` and the sweep's cells do
 before the plugin's set-up: there the set-up runs in a process whose memory other renders
@@ -34,7 +42,7 @@ have shaped (docs/MEASUREMENTS.md, "A pyramid's arrays mapped, not copied").
 
     python3 scripts/bench_setup.py [--scene material_studio] [--envmap FILE] [--res 480]
                                    [--spp 16] [--methods direct sh_direct] [--map-change FILE]
-                                   [--renders-first N] [--json OUT.json]
+                                   [--renders-first N] [--then-envmap FILE] [--json OUT.json]
 """
 
 from __future__ import annotations
@@ -91,11 +99,15 @@ def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: s
         return time.perf_counter() - start
 
     integrator = mi.load_dict({"type": method})
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()  # (emptied: only the first call's kernels count)
     plan_s = timed_plan(integrator)
     first = plan_s + one_pass(integrator, 0)
+    compiled = compiled_kernels(dr.kernel_history())
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
     passes = [one_pass(integrator, 1 + k) for k in range(NEXT_PASSES)]
     pass_s = statistics.median(passes)
-    record = {"first_call_s": first, "plan_s": plan_s, "pass_s": pass_s, "passes_s": passes}
+    record = {"first_call_s": first, "plan_s": plan_s, "pass_s": pass_s, "passes_s": passes, **compiled}
     made = integrator.plan(scene) if hasattr(integrator, "plan") else None
     if made is not None:
         env = integrator.scenes.get(scene)
@@ -131,12 +143,28 @@ def run_child(scene_name: str, envmap: str | None, res: int, spp: int, method: s
     return record
 
 
-def measure(args, method: str, kernels: str, builds: str) -> dict:
-    """One child process, with these kernel and build cache folders; its record."""
+def compiled_kernels(history: list, largest: int = 3) -> dict:
+    """What Dr.Jit compiled among the launches of ``history`` (``dr.kernel_history()``): its
+    kernels that were not in the kernel cache, the seconds LLVM (or the CUDA driver) took on
+    them, and the ``largest`` of them as (operations, milliseconds)."""
+    misses = [k for k in history if k["type"].name == "JIT" and not k.get("cache_hit", True)]
+    sizes = sorted(((int(k["operation_count"]), round(float(k["backend_time"]), 1)) for k in misses), reverse=True)
+    return {"kernels_compiled": len(misses), "llvm_s": sum(float(k["backend_time"]) for k in misses) / 1000.0,
+            "largest_compiled": [list(size) for size in sizes[:largest]]}
+
+
+def state_envmap(args, index: int) -> str | None:
+    """The map the ``index``-th state renders: ``--envmap`` (None: the scene's), and
+    ``--then-envmap`` after the first."""
+    return args.then_envmap if index > 0 and args.then_envmap else args.envmap
+
+
+def measure(args, method: str, kernels: str, builds: str, envmap: str | None = None) -> dict:
+    """One child process, with these kernel and build cache folders and this map; its record."""
     command = [sys.executable, os.path.abspath(__file__), CHILD_FLAG,
                "--scene", args.scene, "--res", str(args.res), "--spp", str(args.spp), "--methods", method]
-    if args.envmap:
-        command += ["--envmap", args.envmap]
+    if envmap:
+        command += ["--envmap", envmap]
     if args.map_change:
         command += ["--map-change", args.map_change]
     if args.renders_first:
@@ -169,6 +197,8 @@ def main(argv=None) -> None:
                         help="also time a change of the scene's map to this file's texels (same resolution)")
     parser.add_argument("--renders-first", type=int, default=0,
                         help="in each child, render the scene this many times with direct and with path first")
+    parser.add_argument("--then-envmap", default=None,
+                        help="render this map in the states after the first (a map new to the machine)")
     parser.add_argument("--json", default=os.path.join("docs", "bench_setup.json"))
     parser.add_argument(CHILD_FLAG, action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -183,21 +213,25 @@ def main(argv=None) -> None:
             # Caches of its own, so that cold is cold for every method; a state that keeps a
             # cache reads the one the states before it filled.
             kernels = builds = None
-            for state in args.states:
+            for index, state in enumerate(args.states):
                 kernels_kept, builds_kept = STATES[state]
                 if not kernels_kept or kernels is None:
                     kernels = os.path.join(root, method, f"kernels-{state}")
                 if not builds_kept or builds is None:
                     builds = os.path.join(root, method, f"builds-{state}")
-                record = measure(args, method, kernels, builds)
-                record.update(method=method, cache=state, setup_s=record["first_call_s"] - record["pass_s"])
+                envmap = state_envmap(args, index)
+                record = measure(args, method, kernels, builds, envmap)
+                record.update(method=method, cache=state, envmap=envmap,
+                              setup_s=record["first_call_s"] - record["pass_s"])
                 rows.append(record)
     direct_pass = next((r["pass_s"] for r in rows if r["method"] == "direct"), None)
     print(f"{args.scene} at {args.res} px wide, {args.spp} spp a pass"
           + (f", envmap {os.path.basename(args.envmap)}" if args.envmap else "")
+          + (f", then {os.path.basename(args.then_envmap)}" if args.then_envmap else "")
           + (f", after {args.renders_first} renders each of direct and path" if args.renders_first else ""))
     print(f"{'method':<12}{'cache':<9}{'first call s':>13}{'pass s':>9}{'set-up s':>10}{'in direct passes':>18}"
-          f"{'state s':>9}{'plan s':>8}{'compile s':>11}{'2nd object s':>14}{'BSDF change s':>15}{'payback s':>11}"
+          f"{'state s':>9}{'plan s':>8}{'compile s':>11}{'LLVM s':>8}{'2nd object s':>14}{'BSDF change s':>15}"
+          f"{'payback s':>11}"
           + (f"{'map change s':>14}" if args.map_change else ""))
     nan = float("nan")
     for r in rows:
@@ -208,14 +242,17 @@ def main(argv=None) -> None:
         payback = f"{r['payback_s']:>11.1f}" if r["payback_s"] is not None else f"{'':>11}"
         print(f"{r['method']:<12}{r['cache']:<9}{r['first_call_s']:>13.2f}{r['pass_s']:>9.3f}{r['setup_s']:>10.2f}"
               f"{in_passes:>18.1f}{r.get('state_s', nan):>9.2f}{r.get('choice_s', nan):>8.2f}{r['compile_s']:>11.2f}"
+              f"{r['llvm_s']:>8.2f}"
               f"{r['second_object_s']:>14.2f}{r.get('bsdf_change_s', nan):>15.2f}" + payback
               + (f"{r.get('map_change_s', nan):>14.2f}" if args.map_change else ""))
     print("state: the per-scene state (pyramid, lobe fits, tables); plan: the strategy plan; compile: the rest of "
-          "the set-up (tracing and compiling the kernels)")
+          "the set-up (tracing and compiling the kernels); LLVM: the seconds LLVM spent compiling kernels not in "
+          "Dr.Jit's cache, in the plan and the first pass")
     print(f"payback: wall time from which the method's lower error at {args.efficiency}x direct's "
           "equal-time efficiency has paid for its extra set-up")
     from mitsuba_shsampling.benchmarks import write_json
-    write_json(args.json, {"scene": args.scene, "envmap": args.envmap, "map_change": args.map_change,
+    write_json(args.json, {"scene": args.scene, "envmap": args.envmap, "then_envmap": args.then_envmap,
+                           "map_change": args.map_change,
                            "res": args.res, "spp": args.spp, "renders_first": args.renders_first,
                            "efficiency": args.efficiency, "runs": rows})
 

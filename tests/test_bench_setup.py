@@ -29,6 +29,29 @@ def test_payback_is_where_the_remaining_time_at_e_times_the_efficiency_matches_t
     assert payback(3.0, 1.0) == math.inf and payback(3.0, 0.8) == math.inf
 
 
+def test_a_map_given_for_the_later_states_is_rendered_after_the_first_state_only():
+    script = load_script()
+
+    class Args:
+        envmap, then_envmap = None, "user_map.exr"
+
+    assert [script.state_envmap(Args, k) for k in range(3)] == [None, "user_map.exr", "user_map.exr"]
+    Args.then_envmap = None
+    assert [script.state_envmap(Args, k) for k in range(2)] == [None, None]
+
+
+def test_what_a_first_call_compiled_is_read_from_the_kernel_history():
+    script = load_script()
+    import drjit as dr
+
+    history = [{"type": dr.KernelType.JIT, "cache_hit": False, "operation_count": 900, "backend_time": 40.0},
+               {"type": dr.KernelType.JIT, "cache_hit": True, "operation_count": 5000, "backend_time": 0.0},
+               {"type": dr.KernelType.JIT, "cache_hit": False, "operation_count": 12000, "backend_time": 800.0},
+               {"type": dr.KernelType.Memset}]
+    compiled = script.compiled_kernels(history, largest=1)
+    assert compiled == {"kernels_compiled": 2, "llvm_s": 0.84, "largest_compiled": [[12000, 800.0]]}
+
+
 def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_plan_apart(tmp_path):
     out = tmp_path / "setup.json"
     env = dict(os.environ, PYTHONPATH=REPO + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -68,6 +91,11 @@ def test_each_method_is_timed_cold_then_warm_and_sh_direct_reports_its_plan_apar
     # Warm: the builds come from the disk cache, so the state costs less than its cold build.
     assert sh[1]["state_s"] < sh[0]["state_s"]
     assert all(r["payback_s"] is None for r in runs if r["method"] == "direct")
+    # What the first call compiled: cold, the plugin's kernels; warm, nothing (the kernels are the
+    # same in every process, so a new process finds each of them in Dr.Jit's cache).
+    assert sh[0]["kernels_compiled"] > 0 and sh[0]["llvm_s"] > 0 and len(sh[0]["largest_compiled"]) > 0
+    assert all(r["kernels_compiled"] == 0 and r["llvm_s"] == 0 for r in runs if r["cache"] == "warm")
+    assert "LLVM s" in proc.stdout
     assert "payback" in proc.stdout and "map change" in proc.stdout
     # The map change reaches the plugin's state: the pyramid is the new map's (half the radiance).
     assert all(math.isclose(r["map_change_radiant_ratio"], 0.5, rel_tol=1e-3) for r in sh)
