@@ -178,6 +178,7 @@ def render_file(args) -> dict:
     from tqdm import tqdm
 
     from .frozen import FrozenPass
+    from .integrators.chooser import compiling_note
     from .report.scene_setup import with_environment
 
     path = resolve_scene(args.scene)
@@ -208,7 +209,8 @@ def render_file(args) -> dict:
     strategy = integrator.plan(scene, sensor) if hasattr(integrator, "plan") else None
     setup_s = time.perf_counter() - start
     if strategy is not None:
-        print(f"plan ({strategy.mode}, set-up {setup_s:.2f} s): {strategy.summary()}", flush=True)
+        print(f"plan ({strategy.mode}, set-up {setup_s:.2f} s{compiling_note(strategy.compile_seconds)}): "
+              f"{strategy.summary()}", flush=True)
     total = None
     with tqdm(total=spp, unit="spp", desc=os.path.basename(path), disable=args.no_progress,
               file=sys.stderr) as bar:
