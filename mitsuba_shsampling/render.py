@@ -209,7 +209,7 @@ def render_file(args) -> dict:
     strategy = integrator.plan(scene, sensor) if hasattr(integrator, "plan") else None
     setup_s = time.perf_counter() - start
     if strategy is not None:
-        print(f"plan ({strategy.mode}, set-up {setup_s:.2f} s{compiling_note(strategy.compile_seconds)}): "
+        print(f"plan ({strategy.mode}, set-up {setup_s:.2f} s{compiling_note(strategy.kernels_compiled)}): "
               f"{strategy.summary()}", flush=True)
     total = None
     with tqdm(total=spp, unit="spp", desc=os.path.basename(path), disable=args.no_progress,

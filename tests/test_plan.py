@@ -447,10 +447,9 @@ def test_the_plan_is_one_info_line_with_the_set_up_time(capfd):
     assert len(lines) == 2
     assert f"set-up {choice.setup_seconds:.2f} s" in lines[0] and "ggx" in lines[0]
     assert choice.setup_seconds > 0
-    # What of it was compiling kernels Dr.Jit's cache did not hold (said in the line where it counts).
-    assert choice.compile_seconds is not None and 0 <= choice.compile_seconds < choice.setup_seconds
-    noted = choice.compile_seconds >= chooser_module.COMPILING_NOTED_S
-    assert ("compiling kernels new to this machine" in lines[0]) == noted
+    # The kernels it compiled because Dr.Jit's cache did not hold them, said in the line where any were.
+    assert choice.kernels_compiled >= 0
+    assert ("new to this machine" in lines[0]) == (choice.kernels_compiled > 0)
 
 
 def test_sh_path_plans_before_its_first_render_from_the_path_model():

@@ -52,7 +52,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..timing import compile_time
+from ..timing import kernels_compiled
 from .costs import CostModel, cost_model
 from .emitter_selection import SELECTION_REQUIRED_GAIN, price_emitter_selection, selection_summary
 from .pilots import (FILM_PILOT_PIXELS, LEAN, PILOT_IMAGES, PILOT_LANES, Candidate, Pilots, calibrate,
@@ -159,11 +159,10 @@ class StrategyChoice:
     """The cost model the plan was weighed with (:meth:`CostModel.as_dict`)."""
     setup_seconds: float = 0.0
     """Set-up before the first pass: the per-scene state's build and the plan."""
-    compile_seconds: float | None = None
-    """Of the plan's share of that, the seconds LLVM spent compiling kernels that Dr.Jit's kernel
-    cache did not hold (the quadrature's and the pilots': on a machine's first render, or with
-    a map of a resolution or materials it has not rendered, most of the set-up); None where the
-    kernel history was the caller's (:func:`~mitsuba_shsampling.timing.compile_time`)."""
+    kernels_compiled: int = 0
+    """Kernels the set-up (the state's build and the plan) compiled because Dr.Jit's kernel cache
+    did not hold them: on a machine's first render, or with a map of a resolution or materials
+    it has not rendered, most of the set-up (:func:`~mitsuba_shsampling.timing.kernels_compiled`)."""
     confirmation_time: dict = dataclasses.field(default_factory=dict)
     """``plan`` ``measure``, where :func:`confirm_by_timing` ran: ``confirm 0`` (the model's
     pick), ``confirm 1`` ... (its close rivals) -> pass time (s) of each, timed as a whole."""
@@ -183,7 +182,7 @@ class StrategyChoice:
 
     def as_dict(self) -> dict:
         return {"predicted_gain": self.predicted_gain, "lean": self.lean, "seconds": self.seconds,
-                "mode": self.mode, "setup_seconds": self.setup_seconds, "compile_seconds": self.compile_seconds,
+                "mode": self.mode, "setup_seconds": self.setup_seconds, "kernels_compiled": self.kernels_compiled,
                 "costs": dict(self.costs),
                 "cosine_tables": list(self.cosine_tables), "bsdf_shares": list(self.bsdf_shares),
                 "pass_time_s": dict(self.pass_time), "confirmation_time_s": dict(self.confirmation_time),
@@ -206,16 +205,12 @@ class StrategyChoice:
         return {m.name: m.strategy.label for m in self.materials}
 
 
-COMPILING_NOTED_S = 0.1
-"""Compilation the plan's Info line mentions (less is noise: a few small kernels)."""
-
-
-def compiling_note(seconds: float | None) -> str:
-    """What the plan's Info line adds about the kernels compiled while planning: nothing where
-    that was under :data:`COMPILING_NOTED_S` (or unknown)."""
-    if seconds is None or seconds < COMPILING_NOTED_S:
+def compiling_note(kernels: int) -> str:
+    """What the plan's Info line adds about the kernels the plan compiled (nothing where none)."""
+    if kernels <= 0:
         return ""
-    return f", {seconds:.1f} s of it compiling kernels new to this machine, which Dr.Jit keeps for the next time"
+    return (f", compiling {kernels} kernel{'s' if kernels > 1 else ''} new to this machine; Dr.Jit keeps "
+            f"{'them' if kernels > 1 else 'it'} for the next time")
 
 
 def summary_of(choice: dict) -> str:
@@ -820,7 +815,7 @@ class StrategyChooser:
             # the studio), in every later process that renders the same scene.
             key = env.options_key if self.mode == MEASURE else f"{env.options_key}; {cost_model(self.kind).key}"
             file = plan_file.wisdom_path(scene, sensor, key)
-        with compile_time() as compiled:
+        with kernels_compiled() as compiled:
             stored = plan_file.load(file, env, key) if file else None
             if stored is not None:
                 env.choice = stored_choice(env, stored, "file" if self.plan_file else "kept")
@@ -829,9 +824,9 @@ class StrategyChooser:
                 if file:
                     plan_file.save(file, env.choice, key)
         env.choice.setup_seconds = env.build_seconds + time.perf_counter() - start
-        env.choice.compile_seconds = compiled.seconds
+        env.choice.kernels_compiled = getattr(env, "kernels_compiled", 0) + compiled.kernels
         mi.Log(mi.LogLevel.Info, f"{env.plugin}: plan ({env.choice.mode}, set-up {env.choice.setup_seconds:.2f} s"
-                                 f"{compiling_note(compiled.seconds)}): {env.choice.summary()}")
+                                 f"{compiling_note(env.choice.kernels_compiled)}): {env.choice.summary()}")
 
     def _choose(self, env, scene, sensor, render, integrator, sample) -> StrategyChoice:
         # Untimed pilots differ only in the strategy table, which is device data: one recording

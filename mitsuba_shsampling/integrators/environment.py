@@ -37,6 +37,7 @@ from ..envmap.evaluated import EVALUATED_EMITTERS, is_evaluated, sky_components
 from ..envmap.pyramid import BLACK_MAP_REASON, EnvPyramid, finest_level_kept
 from ..lobes import SceneLobes
 from ..scene_materials import registry_id, scene_materials
+from ..timing import kernels_compiled
 from ..traversal import readable_parameters
 from ..warp.product import ProductWarp
 from ..warp.proxy_lobe import ProxyLobe
@@ -772,8 +773,11 @@ class SceneCache:
             # a second or more; a collection is milliseconds.
             collect_cycles()
             # A rebuild for changed parameters: its builds stay in the process (build_cache).
-            with kept_in_process() if self._scene is scene else contextlib.nullcontext():
+            with kept_in_process() if self._scene is scene else contextlib.nullcontext(), \
+                    kernels_compiled() as compiled:
                 self._env = self._build(scene)
+            #: What the build compiled (the plan's Info line adds the plan's: chooser.before_render).
+            self._env.kernels_compiled = compiled.kernels
             self._scene = scene
             self._traversed = self._traverse(scene)
             # Read after the build, which may have sanitised the envmap's data.
