@@ -206,7 +206,8 @@ class StrategyChoice:
 
 
 def compiling_note(kernels: int) -> str:
-    """What the plan's Info line adds about the kernels the plan compiled (nothing where none)."""
+    """What the plan's Info line (and ``render``'s) adds about the kernels the set-up compiled,
+    :attr:`StrategyChoice.kernels_compiled` (nothing where none)."""
     if kernels <= 0:
         return ""
     return (f", compiling {kernels} kernel{'s' if kernels > 1 else ''} new to this machine; Dr.Jit keeps "
